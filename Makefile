@@ -1,0 +1,31 @@
+# The workspace's commands. Every target sets the workspace up first (idempotent, seconds when
+# nothing changed): see scripts/setup.sh.
+SHELL := /bin/bash
+ARGS ?=
+PYTEST_ARGS ?=
+
+.PHONY: help setup run test bench-sim bench-memory lock clean
+
+help:  ## list the targets
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | sed -E 's/:.*## /\t/'
+
+setup:  ## create/refresh the venv (cached outside the clone), build with colcon, write env.sh
+	@scripts/setup.sh
+
+run: setup  ## the main job: train COMCACT through the ROS node suite (ARGS="--ros-args -p ...")
+	@. ./env.sh && ros2 run comper_agent comcact_node $(ARGS)
+
+test: setup  ## the whole test suite (unit + ROS integration)
+	@. ./env.sh && python -m pytest test $(PYTEST_ARGS)
+
+bench-sim: setup  ## lock-step simulation throughput through ROS vs gymnasium direct
+	@. ./env.sh && python benchmarks/sim_bench.py $(ARGS)
+
+bench-memory: setup  ## compact-memory throughput, in-process and through ROS
+	@. ./env.sh && python benchmarks/memory_core_bench.py $(ARGS) && python benchmarks/memory_ros_bench.py $(ARGS)
+
+lock:  ## re-resolve requirements.in into requirements.lock (needs the registries)
+	@scripts/lock.sh
+
+clean:  ## remove build outputs (the cached venv stays)
+	rm -rf build install log env.sh .venv .colcon-build.out

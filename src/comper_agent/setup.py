@@ -1,0 +1,26 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "comper_agent"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=False,
+    maintainer="COMPER suite developers",
+    maintainer_email="dev@example.com",
+    description="COMPER and COMCACT agents, the Q-target (QT) trainer, recording and offline evaluation.",
+    license="Apache-2.0",
+    entry_points={"console_scripts": [
+        "qt_trainer_node = comper_agent.qt_trainer_node:main",
+        "comcact_node = comper_agent.comcact_node:main",
+    ]},
+)

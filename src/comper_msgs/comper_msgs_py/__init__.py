@@ -1,0 +1,1 @@
+"""Python side of comper_msgs: array types and the one place that converts messages to numpy."""
