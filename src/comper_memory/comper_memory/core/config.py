@@ -1,0 +1,78 @@
+"""MemoryConfig: every default of the compact memory, documented once (no ROS imports)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from comper_msgs_py.params import ConfigError, param
+
+__all__ = ["MemoryConfig"]
+
+
+@dataclass(frozen=True)
+class MemoryConfig:
+    delta: float = param(
+        1e-4, "similarity threshold on the squared L2 distance between transition keys; two "
+        "transitions are similar when distance <= delta, checked exactly in float64",
+        thesis="1e-4 (section 5.3.2; 1e-5 and 1e-3 also studied); Table 34 lists 0.0", minimum=0.0)
+    rtm_capacity: int = param(
+        1_000_000, "maximum number of live identities (RTM entries plus not-yet-reduced sets); "
+        "above it the least recently updated identity is evicted from RTM, TM and the index",
+        thesis="not given (RTM grows with the number of identities)", minimum=1)
+    tm_capacity: int = param(
+        100_000, "maximum number of similar-transition sets waiting in TM; above it the least "
+        "recently updated identity among them is evicted from TM, RTM and the index",
+        thesis="100,000 sets (Table 34, 'Transition memory size')", minimum=1)
+    history_length: int = param(
+        32, "value labels kept per similar-transition set (time-ordered, newest kept)",
+        thesis="unbounded in the text (eq. 4.2); bounded here so memory per identity is fixed",
+        minimum=1)
+    reduce_batch: int = param(
+        1000, "sets popped from TM (oldest first) per reduction",
+        thesis="1,000 for COMPER (Table 34, 'Similar transitions batch size'); 50,000 for COMCACT (App. B)",
+        minimum=1)
+    max_store_batch: int = param(
+        16384, "largest number of transitions accepted by one store call (larger calls are refused)",
+        minimum=1)
+    max_sample_batch: int = param(
+        65536, "largest number of entries returned by one sample call", minimum=1)
+    frame_scale: float = param(
+        1.0 / 255.0, "factor applied once to uint8 observations when building keys (float32 "
+        "observations are used raw)", thesis="frames scaled to [0, 1] (section 5.1)", minimum=0.0)
+    storage_dir: str = param(
+        "", "directory for the write-ahead log and snapshots; '' keeps the memory in process only")
+    durability: str = param(
+        "flush", "when a store is acknowledged: 'flush' (WAL written to the OS, survives a killed "
+        "process), 'fsync' (also on disk, survives power loss), 'none' (buffered, may lose the tail)",
+        choices=("flush", "fsync", "none"))
+    snapshot_every: int = param(
+        10_000, "write a snapshot and rotate the WAL every this many logged operations (0: never)",
+        minimum=0)
+    lease_timeout_s: float = param(
+        60.0, "seconds a two-phase reduction lease stays valid; expired leases put their sets back "
+        "at the front of TM", minimum=0.0)
+    index_projection_dim: int = param(
+        8, "dimensions of the orthonormal projection the exact index partitions on "
+        "(|P(x - y)| <= |x - y|, so no similar pair is missed; larger = fewer exact re-checks, "
+        "more memory)", minimum=1, maximum=256)
+    index_min_train: int = param(
+        2048, "identities before the index partitions into k-means lists (below: one list)",
+        minimum=16)
+    index_list_size: int = param(
+        64, "target identities per index list (nlist = identities / this, capped)", minimum=8)
+    index_max_lists: int = param(
+        4096, "largest number of index lists", minimum=1)
+    index_rebuild_growth: float = param(
+        4.0, "rebuild (re-train) the index partition when identities grow by this factor",
+        minimum=1.5)
+    index_seed: int = param(0, "seed of the projection and k-means (affects speed only, never results)")
+
+    def validate(self) -> "MemoryConfig":
+        if self.max_store_batch > self.rtm_capacity:
+            raise ConfigError(f"max_store_batch ({self.max_store_batch}) must not exceed "
+                              f"rtm_capacity ({self.rtm_capacity})")
+        if self.max_store_batch > self.tm_capacity:
+            raise ConfigError(f"max_store_batch ({self.max_store_batch}) must not exceed "
+                              f"tm_capacity ({self.tm_capacity})")
+        if self.durability not in ("flush", "fsync", "none"):
+            raise ConfigError(f"durability {self.durability!r} is not one of flush, fsync, none")
+        return self

@@ -1,0 +1,159 @@
+"""Exactness of the similarity decisions against a float64 brute-force sequential reference."""
+import numpy as np
+import pytest
+
+from comper_memory.core import CompactMemory, MemoryConfig, exact_sq_dist, transition_keys
+from comper_msgs_py.arrays import Transitions
+
+FAST_INDEX = dict(index_min_train=64, index_list_size=16, index_rebuild_growth=2.0)
+
+
+def make(rng, n, obs=5, dtype=np.float32, discrete=False):
+    if dtype == np.uint8:
+        s = rng.integers(0, 256, (n,) + obs, dtype=np.uint8)
+        s2 = rng.integers(0, 256, (n,) + obs, dtype=np.uint8)
+    else:
+        s = rng.standard_normal((n, obs)).astype(np.float32)
+        s2 = rng.standard_normal((n, obs)).astype(np.float32)
+    a = rng.integers(0, 4, n) if discrete else rng.standard_normal((n, 2)).astype(np.float32)
+    return Transitions(s, a, rng.standard_normal(n).astype(np.float32), s2,
+                       np.zeros(n, bool), np.zeros(n, bool),
+                       value_labels=rng.standard_normal(n).astype(np.float32))
+
+
+class Reference:
+    """Sequential float64 brute force: nearest live identity within delta, ties -> lowest id."""
+
+    def __init__(self, delta, frame_scale=1 / 255):
+        self.delta, self.fs = delta, frame_scale
+        self.ids, self.keys, self.next_id = [], [], 0
+
+    def store(self, t):
+        keys = transition_keys(t, self.fs)
+        out = []
+        for k in keys:
+            if self.keys:
+                d = exact_sq_dist(np.asarray(self.keys), k[None, :])
+                ok = np.flatnonzero(d <= self.delta)
+                if len(ok):
+                    ids = np.asarray(self.ids)[ok]
+                    j = np.lexsort((ids, d[ok]))[0]
+                    out.append(ids[j])
+                    continue
+            self.ids.append(self.next_id)
+            self.keys.append(k)
+            out.append(self.next_id)
+            self.next_id += 1
+        return np.asarray(out)
+
+    def remove(self, ids):
+        keep = [i for i, x in enumerate(self.ids) if x not in set(ids.tolist())]
+        self.ids = [self.ids[i] for i in keep]
+        self.keys = [self.keys[i] for i in keep]
+
+
+def perturbed(rng, t, scale, frac=1.0):
+    """Copies of t with small random perturbations on the states (some rows exact copies)."""
+    s = t.states.copy()
+    n = len(t)
+    rows = rng.random(n) < frac
+    s[rows] += (scale * rng.standard_normal(s[rows].shape)).astype(np.float32)
+    return Transitions(s, t.actions.copy(), t.rewards.copy(), t.next_states.copy(), t.terminated,
+                       t.truncated, value_labels=rng.standard_normal(n).astype(np.float32))
+
+
+@pytest.mark.parametrize("delta", [0.0, 1e-4, 1e-2, 0.5])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_random_with_duplicates_and_near_duplicates(delta, seed):
+    rng = np.random.default_rng(seed)
+    mem = CompactMemory(MemoryConfig(delta=delta, **FAST_INDEX))
+    ref = Reference(delta)
+    base = make(rng, 150)
+    for step in range(6):
+        parts = [make(rng, 40), base.take(rng.integers(0, 150, 30)),
+                 perturbed(rng, base.take(rng.integers(0, 150, 60)), np.sqrt(max(delta, 1e-6)) / 3)]
+        t = Transitions.concatenate(parts).take(rng.permutation(130))
+        got = mem.store(t).identity_ids
+        np.testing.assert_array_equal(got, ref.store(t))
+    assert mem.stats()["identities"] == len(ref.ids)
+    assert mem.index.nlist > 1  # the partitioned path was exercised
+
+
+@pytest.mark.parametrize("inside", [True, False])
+def test_boundary_exactly_at_delta(inside):
+    """Pairs whose float64 distance is exactly delta (inside) or one ulp above delta (outside)."""
+    rng = np.random.default_rng(3)
+    base = make(rng, 200)
+    near = perturbed(rng, base, 1e-2)
+    d = exact_sq_dist(transition_keys(base), transition_keys(near))
+    target = float(np.sort(d)[100])
+    delta = target if inside else float(np.nextafter(target, -np.inf))
+    mem = CompactMemory(MemoryConfig(delta=delta, **FAST_INDEX))
+    ref = Reference(delta)
+    np.testing.assert_array_equal(mem.store(base).identity_ids, ref.store(base))
+    got = mem.store(near).identity_ids
+    np.testing.assert_array_equal(got, ref.store(near))
+    k = int(np.flatnonzero(d == target)[0])
+    assert (got[k] == k) == inside
+
+
+def test_within_batch_sequential_semantics():
+    rng = np.random.default_rng(5)
+    one = make(rng, 1)
+    t = Transitions.concatenate([one] * 5 + [make(rng, 3)] + [one] * 2)
+    mem = CompactMemory(MemoryConfig(delta=0.0))
+    r = mem.store(t)
+    np.testing.assert_array_equal(r.identity_ids, [0, 0, 0, 0, 0, 1, 2, 3, 0, 0])
+    assert r.new_identities == 4 and r.similarity_hits == 6
+
+
+def test_within_batch_nearer_new_identity_wins():
+    """Item 2 is within delta of existing identity 0 and of the new identity of item 1, but
+    strictly nearer to the new one: it joins the new one (sequential semantics)."""
+    rng = np.random.default_rng(6)
+    base = make(rng, 1)
+    mem = CompactMemory(MemoryConfig(delta=1.0))
+    ref = Reference(1.0)
+    ref.store(base)
+    mem.store(base)
+    a = base.states.copy()
+    b1 = Transitions(a + np.float32(1.5), base.actions, base.rewards, base.next_states, base.terminated,
+                     base.truncated, value_labels=base.value_labels)
+    b2 = Transitions(a + np.float32(0.9), base.actions, base.rewards, base.next_states, base.terminated,
+                     base.truncated, value_labels=base.value_labels)
+    t = Transitions.concatenate([b1, b2])
+    np.testing.assert_array_equal(mem.store(t).identity_ids, ref.store(t))
+
+
+def test_atari_uint8_keys():
+    rng = np.random.default_rng(7)
+    obs = (84, 84)
+    base = make(rng, 30, obs=obs, dtype=np.uint8, discrete=True)
+    assert transition_keys(base).shape == (30, 14114)
+    s = base.states.copy()
+    s[::2, 0, 0] ^= 1  # one pixel off by 1/255: distance (1/255)^2 = 1.5e-5 <= 1e-4
+    s[1::4, :3, :3] ^= 7  # far
+    near = Transitions(s, base.actions, base.rewards, base.next_states, base.terminated, base.truncated,
+                       value_labels=base.value_labels)
+    for delta in (0.0, 1e-4):
+        mem = CompactMemory(MemoryConfig(delta=delta))
+        ref = Reference(delta)
+        for t in (base, near, Transitions.concatenate([near, base])):
+            np.testing.assert_array_equal(mem.store(t).identity_ids, ref.store(t))
+        assert mem.a["states"].dtype == np.uint8
+
+
+def test_exact_after_evictions():
+    rng = np.random.default_rng(8)
+    mem = CompactMemory(MemoryConfig(delta=1e-2, rtm_capacity=300, max_store_batch=100, **FAST_INDEX))
+    ref = Reference(1e-2)
+    pool = make(rng, 400)
+    for step in range(10):
+        t = Transitions.concatenate([make(rng, 50), perturbed(rng, pool.take(rng.integers(0, 400, 50)), 0.03)])
+        got = mem.store(t).identity_ids
+        np.testing.assert_array_equal(got, ref.store(t))
+        live = set(mem.ids_sorted.tolist())
+        ref.remove(np.asarray([i for i in ref.ids if i not in live]))
+        assert mem.stats()["identities"] <= 300
+        assert mem.index.ntotal == mem.stats()["identities"]
+    assert mem.stats()["evictions"] > 0
