@@ -1,0 +1,214 @@
+"""COMCACT / DDPG learner (thesis Algorithm 8, appendix B; method.md section 4).
+
+One COMCACT agent step, as the node drives it:
+    a = learner.act(s, explore=True)                   # mu(s) + OU noise, clipped to the bounds
+    ... env step, store transitions with learner.value_labels(batch) ...
+    batch = sample(64) from RTM
+    learner.update(batch)                              # DDPG critic step, then actor step
+    ... reduce when due (QT trains on popped sets) ...
+    learner.qt_critic_step(batch, qt_targets)          # only variant comcact
+    learner.soft_update()
+The DDPG baseline is the same learner with ``variant = ddpg`` (qt_critic_step refuses to run)
+and a plain :class:`~.replay.ReplayBuffer`.
+
+Batch norm: eval mode (running statistics) for acting, value labels and target computation;
+train mode (batch statistics, running stats updated) inside update() and qt_critic_step().
+Only ``terminated`` masks bootstrapping; ``truncated`` never does.
+"""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+from torch import nn
+
+from comper_msgs_py.arrays import Transitions
+
+from .config import ComcactConfig
+from .networks import Actor, Critic, soft_update
+from .noise import OUNoise
+
+__all__ = ["ComcactLearner"]
+
+
+class ComcactLearner:
+    def __init__(self, config: ComcactConfig, obs_dim: int, action_low, action_high):
+        self.config = c = config
+        self.device = torch.device(c.device)
+        self.obs_dim = int(obs_dim)
+        self.action_low = np.asarray(action_low, dtype=np.float32).reshape(-1)
+        self.action_high = np.asarray(action_high, dtype=np.float32).reshape(-1)
+        self.action_dim = int(self.action_low.size)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(c.seed)
+            self.actor = Actor(obs_dim, self.action_low, self.action_high, c.actor_hidden,
+                               c.actor_final_init).to(self.device)
+            self.critic = Critic(obs_dim, self.action_dim, c.critic_hidden, c.critic_final_init,
+                                 c.critic_action_input).to(self.device)
+        self.actor_target = copy.deepcopy(self.actor)
+        self.critic_target = copy.deepcopy(self.critic)
+        for net in (self.actor, self.critic, self.actor_target, self.critic_target):
+            net.eval()
+        for p in list(self.actor_target.parameters()) + list(self.critic_target.parameters()):
+            p.requires_grad_(False)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=c.actor_lr)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=c.critic_lr)
+        self.noise = OUNoise(self.action_dim, c.ou_theta, c.ou_sigma, dt=c.ou_dt, seed=c.seed)
+        self.updates = 0      # DDPG updates done
+        self.qt_steps = 0     # extra critic steps towards QT targets done
+
+    # ------------------------------------------------------------------ helpers
+    def _t(self, x, dtype=torch.float32) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(x), dtype=dtype, device=self.device)
+
+    def _tensors(self, batch: Transitions):
+        n = len(batch)
+        s = self._t(batch.states).reshape(n, -1)
+        a = self._t(batch.actions).reshape(n, -1)
+        r = self._t(batch.rewards)
+        s2 = self._t(batch.next_states).reshape(n, -1)
+        not_done = 1.0 - self._t(batch.terminated)
+        return s, a, r, s2, not_done
+
+    def _clip(self, params, value):
+        if value > 0:
+            nn.utils.clip_grad_norm_(params, value)
+
+    # ------------------------------------------------------------------ acting
+    def reset_noise(self) -> None:
+        """Start of an episode: OU processes back to their mean."""
+        self.noise.reset()
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, explore: bool = True) -> np.ndarray:
+        """mu(obs) (+ OU noise if explore), clipped to the action bounds. obs [obs_dim] -> [A];
+        obs [N, obs_dim] -> [N, A] (one noise sample shared by the rows)."""
+        obs = np.asarray(obs, dtype=np.float32)
+        single = obs.ndim == 1
+        x = self._t(obs.reshape(1 if single else obs.shape[0], -1))
+        self.actor.eval()
+        a = self.actor(x).cpu().numpy()
+        if explore:
+            n = self.noise.sample()
+            if self.config.noise_relative_to_bounds:
+                n = n * (self.action_high - self.action_low) / 2
+            a = a + n
+        a = np.clip(a, self.action_low, self.action_high).astype(np.float32)
+        return a[0] if single else a
+
+    # ------------------------------------------------------------------ labels and targets
+    @torch.no_grad()
+    def value_labels(self, batch: Transitions) -> np.ndarray:
+        """Labels stored with transitions (online nets, eval mode), float32 [N].
+
+        next_value: Q(s', mu(s')) * (1 - terminated); q_sa: Q(s, a) (thesis-literal)."""
+        if len(batch) == 0:
+            return np.zeros(0, np.float32)
+        s, a, _, s2, not_done = self._tensors(batch)
+        self.actor.eval()
+        self.critic.eval()
+        if self.config.qt_label == "q_sa":
+            v = self.critic(s, a)
+        else:
+            v = self.critic(s2, self.actor(s2)) * not_done
+        return v.cpu().numpy().astype(np.float32)
+
+    @torch.no_grad()
+    def td_targets(self, batch: Transitions) -> torch.Tensor:
+        """DDPG target r + gamma (1 - terminated) Q'(s', mu'(s')) (target nets, eval mode)."""
+        _, _, r, s2, not_done = self._tensors(batch)
+        q2 = self.critic_target(s2, self.actor_target(s2))
+        return r + self.config.gamma * not_done * q2
+
+    @torch.no_grad()
+    def critic_loss(self, batch: Transitions, targets: torch.Tensor | np.ndarray | None = None
+                    ) -> float:
+        """MSE of Q(s, a) (eval mode) against `targets` (default: the DDPG targets)."""
+        s, a, *_ = self._tensors(batch)
+        y = self.td_targets(batch) if targets is None else self._t(targets)
+        self.critic.eval()
+        return float(torch.mean((self.critic(s, a) - y) ** 2))
+
+    @torch.no_grad()
+    def q_values(self, obs: np.ndarray, actions: np.ndarray | None = None) -> np.ndarray:
+        """Q(s, a) in eval mode (a = mu(s) if actions is None), float32 [N]."""
+        s = self._t(obs).reshape(len(obs), -1)
+        self.actor.eval()
+        self.critic.eval()
+        a = self.actor(s) if actions is None else self._t(actions).reshape(len(obs), -1)
+        return self.critic(s, a).cpu().numpy()
+
+    # ------------------------------------------------------------------ updates
+    def update(self, batch: Transitions) -> dict:
+        """One DDPG update on `batch`: critic step towards r + gamma (1 - terminated)
+        Q'(s', mu'(s')), then actor step maximising Q(s, mu(s)). No target update."""
+        c = self.config
+        s, a, _, _, _ = self._tensors(batch)
+        y = self.td_targets(batch)
+        self.critic.train()
+        q = self.critic(s, a)
+        critic_loss = torch.mean((q - y) ** 2)
+        self.critic_opt.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self._clip(self.critic.parameters(), c.grad_clip)
+        self.critic_opt.step()
+
+        self.actor.train()
+        actor_loss = -self.critic(s, self.actor(s)).mean()
+        self.actor_opt.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        self._clip(self.actor.parameters(), c.grad_clip)
+        self.actor_opt.step()
+        self.critic_opt.zero_grad(set_to_none=True)   # drop the actor step's critic gradients
+        self.actor.eval()
+        self.critic.eval()
+        self.updates += 1
+        return {"critic_loss": float(critic_loss.detach()), "actor_loss": float(actor_loss.detach()),
+                "q_mean": float(q.detach().mean()), "target_mean": float(y.mean())}
+
+    def qt_critic_step(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
+        """COMCACT's extra critic step (Algorithm 8 lines 29-34): minimise
+        (r + gamma (1 - terminated) QT(tau) - Q(s, a))^2 with the critic's optimiser."""
+        if self.config.variant != "comcact":
+            raise RuntimeError("qt_critic_step is COMCACT's; the ddpg variant has the QT step off")
+        c = self.config
+        s, a, r, _, not_done = self._tensors(batch)
+        qt = self._t(qt_targets).reshape(-1)
+        if qt.shape[0] != s.shape[0]:
+            raise ValueError(f"{qt.shape[0]} QT targets for {s.shape[0]} transitions")
+        y = r + c.gamma * not_done * qt
+        self.critic.train()
+        q = self.critic(s, a)
+        loss = torch.mean((q - y) ** 2)
+        self.critic_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self._clip(self.critic.parameters(), c.grad_clip)
+        self.critic_opt.step()
+        self.critic.eval()
+        self.qt_steps += 1
+        return {"qt_critic_loss": float(loss.detach()), "qt_target_mean": float(y.mean())}
+
+    def soft_update(self, tau: float | None = None) -> None:
+        """Polyak update of both target networks (parameters and batch-norm running stats)."""
+        tau = self.config.tau if tau is None else tau
+        soft_update(self.actor_target, self.actor, tau)
+        soft_update(self.critic_target, self.critic, tau)
+
+    # ------------------------------------------------------------------ checkpointing
+    def state_dict(self) -> dict:
+        return {"actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
+                "actor_target": self.actor_target.state_dict(),
+                "critic_target": self.critic_target.state_dict(),
+                "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
+                "noise": self.noise.state_dict(), "updates": self.updates, "qt_steps": self.qt_steps}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.actor.load_state_dict(d["actor"])
+        self.critic.load_state_dict(d["critic"])
+        self.actor_target.load_state_dict(d["actor_target"])
+        self.critic_target.load_state_dict(d["critic_target"])
+        self.actor_opt.load_state_dict(d["actor_opt"])
+        self.critic_opt.load_state_dict(d["critic_opt"])
+        self.noise.load_state_dict(d["noise"])
+        self.updates, self.qt_steps = int(d["updates"]), int(d["qt_steps"])

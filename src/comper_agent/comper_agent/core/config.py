@@ -1,0 +1,254 @@
+"""Hyper-parameters of the agent package (no torch, no ROS imports).
+
+Each default is defined once, here, with the thesis value and where the thesis gives it. Defaults
+that differ from the thesis's literal text (docs/method.md section 6) carry ``deviation=``.
+Variants with other defaults (COMCACT's QT, the DQN baseline, the DDPG baseline) are subclasses
+that redefine only the fields whose defaults differ, each again with its source.
+
+Field names are flat (ROS parameters): QT fields carry a ``qt_`` prefix so that a node can declare
+an agent config and a QT config side by side.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from comper_msgs_py.params import param
+
+__all__ = ["QTConfig", "ComcactQTConfig", "ComcactConfig", "DDPGConfig", "ComperConfig", "ALL_CONFIGS",
+           "parameter_table_markdown",
+           "DQNConfig", "qt_config_for"]
+
+_NEXT_VALUE_DEVIATION = (
+    "thesis text stores Q(s_t, a_t) with tau_t (q_sa), which makes r + gamma QT(tau) a target "
+    "without next-state information; next_value labels each transition with the bootstrap value "
+    "of s' (0 when terminated), making eq. 4.1 a proper TD target (method.md 6.1)")
+
+
+# --------------------------------------------------------------------------------------------
+# QT, the Q-target network
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class QTConfig:
+    """COMPER's QT (Table 37 architecture, Table 33 optimiser)."""
+
+    qt_architecture: str = param(
+        "comper", "network layout: comper = Table 37, comcact = Appendix B (only a label; the "
+        "layer sizes below define the network)", choices=("comper", "comcact"))
+    qt_lstm_units: list[int] = param(
+        [64, 32, 32], "units of the stacked LSTM layers (tanh), the last returns only its final output",
+        thesis="64, 32, 32 (Table 37, appendix A.4)")
+    qt_dense_units: int = param(18, "units of the ReLU dense layer after the LSTMs",
+                                thesis="18 (Table 37)", minimum=1)
+    qt_output_activation: str = param("linear", "activation of the 1-unit output layer",
+                                      thesis="linear (appendix A.4)", choices=("linear", "tanh"))
+    qt_output_init: float = param(
+        0.0, "if > 0, the output layer's weights are drawn from U(-x, x) (bias 0); 0 = torch default",
+        thesis="not given for COMPER (Keras default glorot-uniform)", minimum=0.0)
+    qt_sequence_length: int = param(
+        1, "L: 1 feeds the representative key as a length-1 sequence (the thesis's architecture); "
+        "L > 1 feeds the L labels before the newest, each joined with the key (and a presence flag), "
+        "and predicts the newest", thesis="input shape (1, key size) (Table 37)", minimum=1)
+    qt_lr: float = param(2.5e-4, "RMSProp step size", thesis="0.00025 (Table 33)", minimum=0.0)
+    qt_rms_alpha: float = param(0.9, "RMSProp decay (rho) of the squared-gradient average",
+                                thesis="0.9 (Table 33)", minimum=0.0, maximum=1.0)
+    qt_rms_eps: float = param(1e-10, "RMSProp epsilon added to the denominator",
+                              thesis="1e-10 (Table 33)", minimum=0.0)
+    qt_rms_momentum: float = param(0.0, "RMSProp momentum", thesis="0 (Table 33)", minimum=0.0)
+    qt_batch_size: int = param(16, "mini-batch size of QT training", thesis="16 (appendix A.4)",
+                               minimum=1)
+    qt_epochs: int = param(1, "passes over the popped sets per reduction",
+                           thesis="not given (Keras fit default 1)", minimum=1)
+    qt_scaler: str = param(
+        "running", "input/target scaler: running = mean/std accumulated over all training rounds "
+        "(inputs the network already learned keep their scale), refit = refitted on each round's sets",
+        choices=("running", "refit"))
+    qt_grad_clip: float = param(0.0, "if > 0, clip the gradient norm of QT updates to this value",
+                                minimum=0.0)
+    qt_device: str = param("cpu", "torch device of QT (cpu, cuda, cuda:0, ...)")
+    qt_seed: int = param(0, "seed of QT's initial weights and of its mini-batch shuffling", minimum=0)
+
+
+@dataclass(frozen=True)
+class ComcactQTConfig(QTConfig):
+    """COMCACT's QT (Appendix B)."""
+
+    qt_architecture: str = param("comcact", "network layout: comper = Table 37, comcact = Appendix B",
+                                 choices=("comper", "comcact"))
+    qt_lstm_units: list[int] = param([64, 64], "units of the stacked LSTM layers (tanh)",
+                                     thesis="64, 64 (appendix B)")
+    qt_dense_units: int = param(32, "units of the ReLU dense layer after the LSTMs",
+                                thesis="32 (appendix B)", minimum=1)
+    qt_output_activation: str = param(
+        "linear", "activation of the 1-unit output layer", thesis="tanh (appendix B)",
+        choices=("linear", "tanh"),
+        deviation="tanh would bound every Q-target to [-1, 1] while returns are far larger "
+                  "(method.md 6.2)")
+    qt_output_init: float = param(3e-4, "output layer weights drawn from U(-x, x) (bias 0)",
+                                  thesis="U(-0.0003, 0.0003) (appendix B)", minimum=0.0)
+    qt_lr: float = param(1e-3, "RMSProp step size", thesis="1e-3 (appendix B)", minimum=0.0)
+    qt_rms_alpha: float = param(0.9, "RMSProp decay (rho)",
+                                thesis="not given (Keras RMSprop default 0.9)", minimum=0.0, maximum=1.0)
+    qt_rms_eps: float = param(1e-7, "RMSProp epsilon", thesis="not given (Keras RMSprop default 1e-7)",
+                              minimum=0.0)
+    qt_rms_momentum: float = param(0.0, "RMSProp momentum", thesis="not given (Keras default 0)",
+                                   minimum=0.0)
+    qt_batch_size: int = param(32, "mini-batch size of QT training",
+                               thesis="not given (Keras fit default 32)", minimum=1)
+
+
+def qt_config_for(architecture: str, values: dict | None = None):
+    """The QT config class for an architecture name, built from `values` (validated)."""
+    from comper_msgs_py.params import config_from_dict
+    cls = {"comper": QTConfig, "comcact": ComcactQTConfig}[architecture]
+    return config_from_dict(cls, values, ignore_unknown=True)
+
+
+# --------------------------------------------------------------------------------------------
+# COMCACT / DDPG
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ComcactConfig:
+    """COMCACT (Algorithm 8, appendix B). The DDPG baseline is :class:`DDPGConfig`."""
+
+    variant: str = param("comcact", "comcact = DDPG updates + the extra critic step towards "
+                         "r + gamma (1 - terminated) QT(tau); ddpg = the QT step off (baseline)",
+                         choices=("comcact", "ddpg"))
+    qt_label: str = param("next_value", "value label stored with each transition: next_value = "
+                          "Q(s', mu(s')) (0 when terminated); q_sa = Q(s, a) (thesis-literal)",
+                          thesis="q_sa (Algorithm 8 line 8)", choices=("next_value", "q_sa"),
+                          deviation=_NEXT_VALUE_DEVIATION)
+    actor_hidden: list[int] = param([400, 300], "actor hidden layers (ReLU, batch norm after each)",
+                                    thesis="400, 300 (appendix B)")
+    critic_hidden: list[int] = param([400, 300], "critic hidden layers (ReLU)",
+                                     thesis="400, 300 (appendix B)")
+    critic_action_input: str = param(
+        "second_hidden", "where the action enters the critic: second_hidden = concatenated to the "
+        "(batch-normalised) first hidden layer's output, the input of the second hidden layer "
+        "(Lillicrap et al. 2016); output = after the second hidden layer (thesis-literal reading)",
+        thesis="'after the second hidden layer' (appendix B)", choices=("second_hidden", "output"))
+    actor_final_init: float = param(3e-3, "actor output layer weights and bias drawn from U(-x, x)",
+                                    thesis="U(-0.003, 0.003) (appendix B)", minimum=0.0)
+    critic_final_init: float = param(3e-4, "critic output layer weights and bias drawn from U(-x, x)",
+                                     thesis="U(-0.0003, 0.0003) (appendix B)", minimum=0.0)
+    actor_lr: float = param(1e-3, "Adam step size of the actor", thesis="1e-3 (appendix B)",
+                            minimum=0.0)
+    critic_lr: float = param(2e-3, "Adam step size of the critic (also used by the QT step)",
+                             thesis="'20^-3' (appendix B), read as 2e-3", minimum=0.0)
+    gamma: float = param(0.99, "discount factor", thesis="0.99 (appendix B)", minimum=0.0, maximum=1.0)
+    tau: float = param(0.005, "soft target update rate", thesis="0.005 (appendix B)",
+                       minimum=0.0, maximum=1.0)
+    batch_size: int = param(64, "transitions per update, sampled uniformly from RTM (or the replay "
+                            "buffer for ddpg)", thesis="64 (appendix B)", minimum=2)
+    learning_starts: int = param(64, "first update once the memory holds this many transitions "
+                                 "(batch norm needs a batch)",
+                                 thesis="not given (Algorithm 8 updates from the first step)", minimum=0)
+    ou_theta: float = param(0.15, "Ornstein-Uhlenbeck mean reversion", thesis="0.15 (section 4.2)",
+                            minimum=0.0)
+    ou_sigma: float = param(0.2, "Ornstein-Uhlenbeck volatility", thesis="0.2 (section 4.2)",
+                            minimum=0.0)
+    ou_dt: float = param(1.0, "Ornstein-Uhlenbeck time step (1.0 = the discrete process of "
+                         "Lillicrap et al.; the Keras DDPG example uses 0.01)",
+                         thesis="not given", minimum=0.0)
+    noise_relative_to_bounds: bool = param(
+        True, "true: OU noise is in normalised action units, scaled by (high - low) / 2 before it is "
+        "added; false: added in raw action units")
+    replay_size: int = param(100_000, "capacity of the plain replay buffer (ddpg baseline)",
+                             thesis="not given (runs have 50,000 steps; nothing is overwritten)",
+                             minimum=1)
+    grad_clip: float = param(0.0, "if > 0, clip actor and critic gradient norms to this value",
+                             minimum=0.0)
+    device: str = param("cpu", "torch device of the learner (cpu, cuda, ...)")
+    num_threads: int = param(2, "torch intra-op threads, set by the entry point", minimum=1)
+    seed: int = param(0, "seed of network initialisation, noise and replay sampling", minimum=0)
+
+
+@dataclass(frozen=True)
+class DDPGConfig(ComcactConfig):
+    """DDPG baseline: the COMCACT learner with the QT step off and a plain replay buffer."""
+
+    variant: str = param("ddpg", "comcact or ddpg (baseline, QT step off)",
+                         choices=("comcact", "ddpg"))
+
+
+# --------------------------------------------------------------------------------------------
+# COMPER / DQN
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ComperConfig:
+    """COMPER (Algorithm 7, appendix A). The DQN baseline is :class:`DQNConfig`."""
+
+    variant: str = param(
+        "comper", "comper = target r + gamma (1 - terminated) QT(tau), RTM sampling; comper_m = the "
+        "same target, sampling from TM; comper_f = RTM sampling with the DQN target network; "
+        "dqn = replay buffer + target network (baseline)",
+        choices=("comper", "comper_m", "comper_f", "dqn"))
+    qt_label: str = param("next_value", "value label stored with each transition: next_value = "
+                          "max_a Q(s', a) (0 when terminated); q_sa = Q(s, a) (thesis-literal)",
+                          thesis="q_sa (Algorithm 7 line 4: Q_t from epsilon-greedy)",
+                          choices=("next_value", "q_sa"), deviation=_NEXT_VALUE_DEVIATION)
+    n_actions: int = param(18, "outputs of the Q-network (ALE full action set)",
+                           thesis="18 (appendix A.4)", minimum=1)
+    frame_stack: int = param(1, "frames per observation (input channels)",
+                             thesis="1 single frame, 4 stacked (Table 34)", minimum=1)
+    lr: float = param(2.5e-4, "RMSProp step size", thesis="0.00025 (Table 32)", minimum=0.0)
+    rms_grad_momentum: float = param(0.95, "RMSProp gradient (mean) momentum",
+                                     thesis="0.95 (Table 32)", minimum=0.0, maximum=1.0)
+    rms_sq_grad_momentum: float = param(0.95, "RMSProp squared-gradient momentum",
+                                        thesis="0.95 (Table 32)", minimum=0.0, maximum=1.0)
+    rms_min_sq_grad: float = param(0.01, "constant added inside the RMSProp denominator's sqrt",
+                                   thesis="0.01 (Table 32)", minimum=0.0)
+    gamma: float = param(0.99, "discount factor", thesis="0.99 (method.md 4)", minimum=0.0,
+                         maximum=1.0)
+    huber_delta: float = param(1.0, "Huber loss threshold (error clipping of Mnih et al. 2015)",
+                               thesis="Huber loss (method.md 4)", minimum=0.0)
+    batch_size: int = param(32, "transitions per update", thesis="32 (Table 34)", minimum=1)
+    train_frequency: int = param(4, "agent steps between updates", thesis="4 (Table 34)", minimum=1)
+    learning_starts: int = param(100, "steps of random play before the first update",
+                                 thesis="100 (Table 34, replay start size)", minimum=0)
+    epsilon_start: float = param(1.0, "initial epsilon", thesis="1.0 (method.md 4)", minimum=0.0,
+                                 maximum=1.0)
+    epsilon_end: float = param(0.01, "final epsilon", thesis="0.01 (method.md 4)", minimum=0.0,
+                               maximum=1.0)
+    epsilon_decay_frames: int = param(90_000, "frames (counting skipped ones) over which epsilon "
+                                      "decays linearly", thesis="90,000 (method.md 4)", minimum=1)
+    target_update_every: int = param(1_000, "agent steps between target-network copies "
+                                     "(comper_f, dqn)", thesis="1,000 (Table 35)", minimum=1)
+    replay_size: int = param(100_000, "replay buffer capacity (dqn)", thesis="100,000 (Table 35)",
+                             minimum=1)
+    device: str = param("cpu", "torch device of the learner (cpu, cuda, ...)")
+    num_threads: int = param(2, "torch intra-op threads, set by the entry point", minimum=1)
+    seed: int = param(0, "seed of network initialisation, exploration and replay sampling", minimum=0)
+
+
+@dataclass(frozen=True)
+class DQNConfig(ComperConfig):
+    """DQN baseline (Table 35)."""
+
+    variant: str = param("dqn", "comper, comper_m, comper_f or dqn",
+                         choices=("comper", "comper_m", "comper_f", "dqn"))
+    frame_stack: int = param(4, "frames per observation (input channels)",
+                             thesis="4 (Table 35)", minimum=1)
+    learning_starts: int = param(1_000, "steps of random play before the first update",
+                                 thesis="1,000 (Table 35)", minimum=0)
+
+
+def parameter_table_markdown(cls) -> str:
+    """A markdown table of a config class: name, default, thesis value, description, deviation."""
+    from comper_msgs_py.params import spec_of
+
+    def cell(x) -> str:
+        return str(x).replace("|", "\\|").replace("\n", " ")
+
+    rows = [f"### {cls.__name__}", "", (cls.__doc__ or "").strip(), "",
+            "| parameter | default | thesis | description | deviation |", "|---|---|---|---|---|"]
+    for f, default, _ in spec_of(cls):
+        m = f.metadata
+        desc = m.get("description", "")
+        if m.get("choices"):
+            desc += f" ({' / '.join(map(str, m['choices']))})"
+        rows.append(f"| `{f.name}` | `{cell(default)}` | {cell(m.get('thesis') or '')} | {cell(desc)} "
+                    f"| {cell(m.get('deviation') or '')} |")
+    return "\n".join(rows) + "\n"
+
+
+ALL_CONFIGS = (QTConfig, ComcactQTConfig, ComcactConfig, DDPGConfig, ComperConfig, DQNConfig)

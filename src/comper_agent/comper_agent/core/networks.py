@@ -1,0 +1,139 @@
+"""Networks: DDPG actor and critic (thesis appendix B), Nature-DQN CNN (Table 36).
+
+Initialisation: hidden layers keep torch's default (U(+-1/sqrt(fan_in)) for weights and biases,
+the fan-in initialisation of Lillicrap et al. 2016); output layers as the thesis gives them.
+
+Batch normalisation (DDPG): ``nn.BatchNorm1d`` with torch defaults (momentum 0.1, eps 1e-5).
+Learners put a network in train mode (batch statistics, running stats updated) only inside an
+update; acting, value labels and target computation run in eval mode (running statistics), so a
+transition's action / value does not depend on the rest of its batch.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+__all__ = ["Actor", "Critic", "NatureCNN", "configure_torch", "soft_update", "hard_update",
+           "frames_to_nchw"]
+
+
+def configure_torch(num_threads: int = 2, seed: int | None = None) -> None:
+    """Call once from an entry point (never at import): thread count and optional global seed."""
+    torch.set_num_threads(max(1, int(num_threads)))
+    if seed is not None:
+        torch.manual_seed(int(seed))
+
+
+class Actor(nn.Module):
+    """BN(obs) -> [Linear h -> ReLU -> BN] per hidden layer -> Linear (U(+-final_init)) -> tanh,
+    scaled to [low, high] per action dimension."""
+
+    def __init__(self, obs_dim: int, action_low, action_high, hidden=(400, 300),
+                 final_init: float = 3e-3):
+        super().__init__()
+        low = torch.as_tensor(action_low, dtype=torch.float32).reshape(-1)
+        high = torch.as_tensor(action_high, dtype=torch.float32).reshape(-1)
+        self.register_buffer("action_center", (high + low) / 2)
+        self.register_buffer("action_half_range", (high - low) / 2)
+        layers: list[nn.Module] = [nn.BatchNorm1d(obs_dim)]
+        d = obs_dim
+        for h in hidden:
+            layers += [nn.Linear(d, h), nn.ReLU(), nn.BatchNorm1d(h)]
+            d = h
+        self.body = nn.Sequential(*layers)
+        self.out = nn.Linear(d, low.numel())
+        nn.init.uniform_(self.out.weight, -final_init, final_init)
+        nn.init.uniform_(self.out.bias, -final_init, final_init)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.action_center + self.action_half_range * torch.tanh(self.out(self.body(obs)))
+
+
+class Critic(nn.Module):
+    """Q(s, a).
+
+    action_input = "second_hidden" (default, Lillicrap et al.):
+        BN(s) -> Linear h1 -> ReLU -> BN -> concat(a) -> Linear h2 -> ReLU -> Linear 1
+    action_input = "output" (thesis-literal reading of appendix B):
+        BN(s) -> Linear h1 -> ReLU -> BN -> Linear h2 -> ReLU -> BN -> concat(a) -> Linear 1
+    Output layer weights and bias U(+-final_init). Batch norm never sees the action, so the
+    critic's batch statistics depend on states only.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden=(400, 300), final_init: float = 3e-4,
+                 action_input: str = "second_hidden"):
+        super().__init__()
+        h1, h2 = hidden
+        self.action_input = action_input
+        self.bn0 = nn.BatchNorm1d(obs_dim)
+        self.fc1 = nn.Linear(obs_dim, h1)
+        self.bn1 = nn.BatchNorm1d(h1)
+        if action_input == "second_hidden":
+            self.fc2 = nn.Linear(h1 + action_dim, h2)
+            self.out = nn.Linear(h2, 1)
+        elif action_input == "output":
+            self.fc2 = nn.Linear(h1, h2)
+            self.bn2 = nn.BatchNorm1d(h2)
+            self.out = nn.Linear(h2 + action_dim, 1)
+        else:
+            raise ValueError(f"unknown critic action_input {action_input!r}")
+        nn.init.uniform_(self.out.weight, -final_init, final_init)
+        nn.init.uniform_(self.out.bias, -final_init, final_init)
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        h = self.bn1(torch.relu(self.fc1(self.bn0(obs))))
+        if self.action_input == "second_hidden":
+            h = torch.relu(self.fc2(torch.cat([h, action], dim=-1)))
+            return self.out(h).squeeze(-1)
+        h = self.bn2(torch.relu(self.fc2(h)))
+        return self.out(torch.cat([h, action], dim=-1)).squeeze(-1)
+
+
+def frames_to_nchw(x: torch.Tensor, channels: int) -> torch.Tensor:
+    """Atari observations to [N, C, 84, 84]: accepts [N, 84, 84] (C = 1), [N, C, 84, 84] and
+    channel-last [N, 84, 84, C]."""
+    if x.ndim == 3:
+        return x.unsqueeze(1)
+    if x.ndim == 4 and x.shape[1] != channels and x.shape[-1] == channels:
+        return x.permute(0, 3, 1, 2)
+    return x
+
+
+class NatureCNN(nn.Module):
+    """Mnih et al. 2015 / thesis Table 36: conv 32x8x8/4, 64x4x4/2, 64x3x3/1, dense 512, dense n.
+
+    Takes uint8 frames (0..255) and scales them to [0, 1] once, inside; float input is assumed to
+    be already in [0, 1].
+    """
+
+    def __init__(self, in_channels: int = 1, n_actions: int = 18):
+        super().__init__()
+        self.in_channels = in_channels
+        self.features = nn.Sequential(
+            nn.Conv2d(in_channels, 32, 8, stride=4), nn.ReLU(),
+            nn.Conv2d(32, 64, 4, stride=2), nn.ReLU(),
+            nn.Conv2d(64, 64, 3, stride=1), nn.ReLU(), nn.Flatten())
+        self.head = nn.Sequential(nn.Linear(3136, 512), nn.ReLU(), nn.Linear(512, n_actions))
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        x = frames_to_nchw(frames, self.in_channels)
+        x = x.float() / 255.0 if x.dtype == torch.uint8 else x.float()
+        return self.head(self.features(x))
+
+
+@torch.no_grad()
+def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
+    """target <- tau * source + (1 - tau) * target, for parameters and floating buffers
+    (batch-norm running mean / var); integer buffers (num_batches_tracked) are copied."""
+    for t, s in zip(target.parameters(), source.parameters()):
+        t.lerp_(s, tau)
+    for t, s in zip(target.buffers(), source.buffers()):
+        if t.dtype.is_floating_point:
+            t.lerp_(s, tau)
+        else:
+            t.copy_(s)
+
+
+@torch.no_grad()
+def hard_update(target: nn.Module, source: nn.Module) -> None:
+    target.load_state_dict(source.state_dict())

@@ -1,0 +1,464 @@
+"""QT, the Q-target network (method.md section 3; thesis Table 37 and appendix B).
+
+QT maps a similar-transition set's representative key (and, with ``qt_sequence_length`` L > 1,
+the set's recent value labels) to a prediction of the set's next value label.
+
+Inputs and targets
+------------------
+* keys [M, key_dim] float32, built by a ``key_fn`` from the representative transitions (default
+  :func:`default_key_fn`; ``comper_memory.core.transition_keys`` can be passed instead).
+* label histories are flat float32 arrays (all sets' histories concatenated, oldest first) plus
+  ``history_lengths`` [M] (the layout of ``comper_msgs/ReductionSets``).
+* :meth:`QTModel.fit` trains on (input built from everything *before* each set's newest label,
+  target = the newest label). :meth:`QTModel.predict` builds the input from the *whole* given
+  history (so it forecasts the label that would come next); with no history it sees the key only.
+* L = 1: the input is the scaled key as a length-1 sequence; histories are used for targets only.
+* L > 1: the input is a length-L sequence; step j is [scaled key, scaled label_j, 1]. Sets with
+  fewer than L earlier labels are left-padded with steps [scaled key, 0, 0] (the presence flag 0
+  tells the LSTM the label is missing; 0 is the label mean in scaled units). A set whose only
+  label is the target therefore trains on a sequence of L padded steps, i.e. on its key alone.
+
+Scaling
+-------
+Inputs are standardised per feature and targets to zero mean and unit variance with a scaler that
+lives in the model (and travels with its weights). ``qt_scaler = running`` accumulates the moments
+over all training rounds; ``refit`` replaces them each round. Features with std < 1e-6 (constant
+pixels) get std 1. Predictions are converted back to value units.
+
+Batch independence
+------------------
+The network has no batch-dependent layers and predicts in eval mode, so a set's prediction does
+not depend on which other sets share the batch (up to float rounding of batched matmuls).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import nn
+
+from comper_msgs_py.params import config_from_dict, config_to_dict
+
+from .config import ComcactQTConfig, QTConfig
+
+__all__ = ["QTNetwork", "QTModel", "default_key_fn", "reduction_predictor", "history_windows",
+           "newest_labels", "QT_FORMAT_VERSION"]
+
+QT_FORMAT_VERSION = 1
+_STD_FLOOR = 1e-6
+
+
+def default_key_fn(transitions) -> np.ndarray:
+    """Key of each transition: concat(s, a, r, s') as float32 [N, key_dim].
+
+    uint8 observations (Atari frames) are scaled once by 1/255; float observations are used raw.
+    Discrete actions become one column holding the action index. Replaceable by
+    ``comper_memory.core.transition_keys`` (same signature).
+    """
+    n = len(transitions)
+
+    def obs(x: np.ndarray) -> np.ndarray:
+        x = x.reshape(n, -1)
+        return x.astype(np.float32) * np.float32(1.0 / 255.0) if x.dtype == np.uint8 else x.astype(np.float32, copy=False)
+
+    return np.concatenate([obs(transitions.states),
+                           np.asarray(transitions.actions, dtype=np.float32).reshape(n, -1),
+                           np.asarray(transitions.rewards, dtype=np.float32).reshape(n, 1),
+                           obs(transitions.next_states)], axis=1)
+
+
+def _offsets(history_lengths: np.ndarray) -> np.ndarray:
+    lengths = np.asarray(history_lengths, dtype=np.int64)
+    return np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
+
+
+def newest_labels(label_history: np.ndarray, history_lengths: np.ndarray) -> np.ndarray:
+    """The last label of each set's history, float32 [M]."""
+    lengths = np.asarray(history_lengths, dtype=np.int64)
+    if np.any(lengths < 1):
+        raise ValueError("every set needs a history of at least one label")
+    return np.asarray(label_history, dtype=np.float32)[_offsets(lengths) + lengths - 1]
+
+
+def history_windows(label_history: np.ndarray, history_lengths: np.ndarray, length: int,
+                    *, exclude_newest: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The last `length` labels of each set (before the newest if `exclude_newest`), left-padded.
+
+    Returns (labels [M, length] float32, present [M, length] bool); padded slots hold 0 / False.
+    Vectorised, no per-set Python loop.
+    """
+    hist = np.asarray(label_history, dtype=np.float32)
+    lengths = np.asarray(history_lengths, dtype=np.int64)
+    m = lengths.shape[0]
+    if length == 0 or m == 0:
+        return np.zeros((m, length), np.float32), np.zeros((m, length), bool)
+    start = _offsets(lengths)
+    end = start + lengths - (1 if exclude_newest else 0)      # exclusive
+    idx = end[:, None] - length + np.arange(length)[None, :]
+    present = idx >= start[:, None]
+    labels = np.where(present, hist[np.clip(idx, 0, max(hist.size - 1, 0))] if hist.size else 0.0, 0.0)
+    return labels.astype(np.float32), present
+
+
+class QTNetwork(nn.Module):
+    """Stacked LSTMs (tanh) -> Dense ReLU -> Dense 1 (linear or tanh).
+
+    Input [B, L, in_dim]; the last LSTM's final output feeds the dense layers. Output [B].
+    """
+
+    def __init__(self, in_dim: int, lstm_units: list[int], dense_units: int,
+                 output_activation: str = "linear", output_init: float = 0.0):
+        super().__init__()
+        sizes = [in_dim] + list(lstm_units)
+        self.lstms = nn.ModuleList(nn.LSTM(sizes[i], sizes[i + 1], batch_first=True)
+                                   for i in range(len(lstm_units)))
+        self.dense = nn.Linear(sizes[-1], dense_units)
+        self.out = nn.Linear(dense_units, 1)
+        if output_init > 0:
+            nn.init.uniform_(self.out.weight, -output_init, output_init)
+            nn.init.zeros_(self.out.bias)
+        self.output_activation = output_activation
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        for lstm in self.lstms:
+            x, _ = lstm(x)
+        h = torch.relu(self.dense(x[:, -1]))
+        y = self.out(h).squeeze(-1)
+        return torch.tanh(y) if self.output_activation == "tanh" else y
+
+
+class _Moments:
+    """Running mean / variance (Chan et al. parallel update), float64."""
+
+    def __init__(self, dim: int):
+        self.n = 0
+        self.mean = np.zeros(dim, np.float64)
+        self.m2 = np.zeros(dim, np.float64)
+
+    def update(self, x: np.ndarray, refit: bool) -> None:
+        x = np.asarray(x, np.float64).reshape(x.shape[0], -1)
+        nb = x.shape[0]
+        if nb == 0:
+            return
+        mb = x.mean(axis=0)
+        m2b = ((x - mb) ** 2).sum(axis=0)
+        if refit or self.n == 0:
+            self.n, self.mean, self.m2 = nb, mb, m2b
+            return
+        n = self.n + nb
+        delta = mb - self.mean
+        self.mean = self.mean + delta * (nb / n)
+        self.m2 = self.m2 + m2b + delta ** 2 * (self.n * nb / n)
+        self.n = n
+
+    def std(self) -> np.ndarray:
+        std = np.sqrt(self.m2 / max(self.n, 1))
+        return np.where(std < _STD_FLOOR, 1.0, std)
+
+
+class QTModel:
+    """QT with its scaler and optimiser; numpy in, numpy out.
+
+    ``key_dim`` may be None: the network is then built on the first fit/predict.
+    """
+
+    def __init__(self, config: QTConfig | None = None, key_dim: int | None = None):
+        self.config = config or QTConfig()
+        self.device = torch.device(self.config.qt_device)
+        self.key_dim: int | None = None
+        self.net: QTNetwork | None = None
+        self.optimizer: torch.optim.Optimizer | None = None
+        self.version = 0                 # training rounds so far; 0 = untrained
+        self.train_loss = float("nan")   # mean loss of the last round (scaled units)
+        self.train_sets = 0
+        self._gen = torch.Generator().manual_seed(self.config.qt_seed + 1)
+        if key_dim is not None:
+            self._build(int(key_dim))
+
+    # ---------------------------------------------------------------- construction
+    @property
+    def sequence_length(self) -> int:
+        return int(self.config.qt_sequence_length)
+
+    @property
+    def in_dim(self) -> int:
+        assert self.key_dim is not None
+        return self.key_dim + (2 if self.sequence_length > 1 else 0)
+
+    def _build(self, key_dim: int) -> None:
+        c = self.config
+        self.key_dim = key_dim
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(c.qt_seed)
+            self.net = QTNetwork(self.in_dim, list(c.qt_lstm_units), c.qt_dense_units,
+                                 c.qt_output_activation, c.qt_output_init).to(self.device)
+        self.net.eval()
+        self.optimizer = torch.optim.RMSprop(self.net.parameters(), lr=c.qt_lr, alpha=c.qt_rms_alpha,
+                                             eps=c.qt_rms_eps, momentum=c.qt_rms_momentum)
+        self._in = _Moments(key_dim)
+        self._lab = _Moments(1)
+        self.input_mean = np.zeros(key_dim, np.float32)
+        self.input_std = np.ones(key_dim, np.float32)
+        self.label_mean = 0.0
+        self.label_std = 1.0
+
+    def _ensure(self, keys: np.ndarray) -> None:
+        if keys.ndim != 2:
+            raise ValueError(f"keys must be [M, key_dim], got shape {keys.shape}")
+        if self.net is None:
+            self._build(keys.shape[1])
+        elif keys.shape[1] != self.key_dim:
+            raise ValueError(f"keys have {keys.shape[1]} features, QT expects {self.key_dim}")
+
+    # ---------------------------------------------------------------- inputs
+    def _inputs(self, keys: np.ndarray, label_history, history_lengths, *, exclude_newest: bool
+                ) -> torch.Tensor:
+        """Scaled input sequences [M, L, in_dim] on the model's device."""
+        k = torch.from_numpy(np.ascontiguousarray(keys, dtype=np.float32)).to(self.device)
+        mean = torch.from_numpy(self.input_mean).to(self.device)
+        std = torch.from_numpy(self.input_std).to(self.device)
+        k = (k - mean) / std
+        L = self.sequence_length
+        if L == 1:
+            return k.unsqueeze(1)
+        m = keys.shape[0]
+        if label_history is None or history_lengths is None:
+            labels = np.zeros((m, L), np.float32)
+            present = np.zeros((m, L), bool)
+        else:
+            labels, present = history_windows(label_history, history_lengths, L,
+                                              exclude_newest=exclude_newest)
+            labels = np.where(present, (labels - self.label_mean) / self.label_std, 0.0)
+        lab = torch.from_numpy(labels.astype(np.float32)).to(self.device)
+        pres = torch.from_numpy(present.astype(np.float32)).to(self.device)
+        return torch.cat([k.unsqueeze(1).expand(m, L, self.key_dim), lab.unsqueeze(-1),
+                          pres.unsqueeze(-1)], dim=-1)
+
+    def _update_scaler(self, keys: np.ndarray, targets: np.ndarray) -> None:
+        refit = self.config.qt_scaler == "refit"
+        self._in.update(keys, refit)
+        self._lab.update(targets.reshape(-1, 1), refit)
+        self.input_mean = self._in.mean.astype(np.float32)
+        self.input_std = self._in.std().astype(np.float32)
+        self.label_mean = float(self._lab.mean[0])
+        self.label_std = float(self._lab.std()[0])
+
+    # ---------------------------------------------------------------- training / prediction
+    def fit(self, keys: np.ndarray, label_history: np.ndarray, history_lengths: np.ndarray,
+            epochs: int | None = None, batch_size: int | None = None) -> float:
+        """Train on M sets (target: each set's newest label). Returns the mean loss (MSE in scaled
+        units) over the mini-batches of the last epoch."""
+        keys = np.asarray(keys, dtype=np.float32)
+        self._ensure(keys)
+        m = keys.shape[0]
+        if m == 0:
+            return float("nan")
+        lengths = np.asarray(history_lengths, dtype=np.int64)
+        if lengths.shape != (m,):
+            raise ValueError(f"history_lengths must have shape ({m},), got {lengths.shape}")
+        targets = newest_labels(label_history, lengths)
+        if not (np.isfinite(keys).all() and np.isfinite(targets).all()):
+            raise ValueError("QT training data holds NaN or Inf")
+        self._update_scaler(keys, targets)
+        x = self._inputs(keys, label_history, lengths, exclude_newest=True)
+        y = torch.from_numpy((targets - self.label_mean) / self.label_std).float().to(self.device)
+        epochs = int(epochs or self.config.qt_epochs)
+        bs = int(batch_size or self.config.qt_batch_size)
+        net, opt = self.net, self.optimizer
+        assert net is not None and opt is not None
+        net.train()
+        losses: list[torch.Tensor] = []
+        for _ in range(epochs):
+            losses = []
+            perm = torch.randperm(m, generator=self._gen).to(self.device)
+            for i in range(0, m, bs):
+                idx = perm[i:i + bs]
+                loss = torch.mean((net(x[idx]) - y[idx]) ** 2)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                if self.config.qt_grad_clip > 0:
+                    nn.utils.clip_grad_norm_(net.parameters(), self.config.qt_grad_clip)
+                opt.step()
+                losses.append(loss.detach())
+        net.eval()
+        self.version += 1
+        self.train_sets = m
+        self.train_loss = float(torch.stack(losses).mean()) if losses else float("nan")
+        return self.train_loss
+
+    @torch.no_grad()
+    def predict(self, keys: np.ndarray, label_history: np.ndarray | None = None,
+                history_lengths: np.ndarray | None = None, batch_size: int = 4096) -> np.ndarray:
+        """Predicted next value label of each set, float32 [M] in value units.
+
+        With L > 1 the input uses the last L labels of the given histories (all of them, the
+        newest included); without histories every step is padding (key only).
+        """
+        keys = np.asarray(keys, dtype=np.float32)
+        self._ensure(keys)
+        m = keys.shape[0]
+        if m == 0:
+            return np.zeros(0, np.float32)
+        assert self.net is not None
+        self.net.eval()
+        out = []
+        for i in range(0, m, batch_size):
+            sl = slice(i, min(m, i + batch_size))
+            if label_history is not None and history_lengths is not None and self.sequence_length > 1:
+                lengths = np.asarray(history_lengths, dtype=np.int64)
+                off = _offsets(lengths)
+                # rebuild the flat history of this chunk (contiguous slice of the flat array)
+                a = int(off[sl.start])
+                b = int(off[sl.stop - 1] + lengths[sl.stop - 1])
+                x = self._inputs(keys[sl], np.asarray(label_history)[a:b], lengths[sl],
+                                 exclude_newest=False)
+            else:
+                x = self._inputs(keys[sl], None, None, exclude_newest=False)
+            out.append(self.net(x))
+        y = torch.cat(out).float().cpu().numpy()
+        return (y * self.label_std + self.label_mean).astype(np.float32)
+
+    def predict_transitions(self, transitions, key_fn: Callable = default_key_fn) -> np.ndarray:
+        """QT(tau) for a batch of transitions (no label history), value units."""
+        return self.predict(key_fn(transitions))
+
+    # ---------------------------------------------------------------- serialisation
+    def to_arrays(self) -> dict:
+        """Everything needed to rebuild the model, as plain data (no pickles).
+
+        Keys match :meth:`from_arrays`'s arguments and the fields of ``comper_msgs/QTModel``:
+        architecture, config (JSON-serialisable dict), key_size, sequence_length, tensors
+        (ordered name -> np.float32 array), input_mean, input_std, label_mean, label_std,
+        version, train_loss, train_sets, format_version.
+        """
+        if self.net is None:
+            raise RuntimeError("QT has no network yet (no key size known)")
+        cfg = config_to_dict(self.config)
+        cfg = {k: (list(v) if isinstance(v, (list, tuple)) else v) for k, v in cfg.items()}
+        return {
+            "architecture": self.config.qt_architecture,
+            "config": cfg,
+            "key_size": int(self.key_dim),
+            "sequence_length": self.sequence_length,
+            "tensors": {name: t.detach().float().cpu().numpy().copy()
+                        for name, t in self.net.state_dict().items()},
+            "input_mean": self.input_mean.astype(np.float32).copy(),
+            "input_std": self.input_std.astype(np.float32).copy(),
+            "label_mean": float(self.label_mean),
+            "label_std": float(self.label_std),
+            "version": int(self.version),
+            "train_loss": float(self.train_loss),
+            "train_sets": int(self.train_sets),
+            "format_version": QT_FORMAT_VERSION,
+        }
+
+    @classmethod
+    def from_arrays(cls, *, config: dict, key_size: int, tensors: dict, input_mean, input_std,
+                    label_mean: float, label_std: float, version: int = 0,
+                    train_loss: float = float("nan"), train_sets: int = 0,
+                    architecture: str | None = None, sequence_length: int | None = None,
+                    format_version: int = QT_FORMAT_VERSION, device: str | None = None) -> "QTModel":
+        """Rebuild a model from :meth:`to_arrays` output (or a ``QTModel`` message's fields).
+
+        `device` overrides the config's qt_device (e.g. a learner on another machine). The running
+        scaler's moments are not transported: a rebuilt model predicts; if it trains further its
+        scaler restarts from the transported mean/std as a single-sample-weighted prior.
+        """
+        if format_version != QT_FORMAT_VERSION:
+            raise ValueError(f"QT arrays of format {format_version}, expected {QT_FORMAT_VERSION}")
+        values = dict(config)
+        if device is not None:
+            values["qt_device"] = device
+        arch = architecture or values.get("qt_architecture", "comper")
+        cfg_cls = ComcactQTConfig if arch == "comcact" else QTConfig
+        cfg = config_from_dict(cfg_cls, values, ignore_unknown=True)
+        if sequence_length is not None and sequence_length != cfg.qt_sequence_length:
+            raise ValueError("sequence_length disagrees with the config")
+        model = cls(cfg, key_dim=int(key_size))
+        assert model.net is not None
+        state = {k: torch.as_tensor(np.asarray(v, dtype=np.float32)) for k, v in tensors.items()}
+        model.net.load_state_dict(state)
+        model._set_scaler(np.asarray(input_mean, np.float32), np.asarray(input_std, np.float32),
+                          float(label_mean), float(label_std), n=1)
+        model.version, model.train_loss, model.train_sets = int(version), float(train_loss), int(train_sets)
+        return model
+
+    def _set_scaler(self, in_mean, in_std, lab_mean, lab_std, n: int) -> None:
+        self.input_mean, self.input_std = in_mean.astype(np.float32), in_std.astype(np.float32)
+        self.label_mean, self.label_std = float(lab_mean), float(lab_std)
+        self._in.n, self._in.mean, self._in.m2 = n, in_mean.astype(np.float64), (in_std.astype(np.float64) ** 2) * n
+        self._lab.n, self._lab.mean = n, np.array([lab_mean], np.float64)
+        self._lab.m2 = np.array([lab_std ** 2 * n], np.float64)
+
+    def state_dict(self) -> dict:
+        """Torch-checkpointable state (tensors and primitives only): weights, optimiser, scaler
+        moments, counters, config."""
+        if self.net is None:
+            return {"config": _plain(config_to_dict(self.config)), "key_dim": None}
+        return {
+            "config": _plain(config_to_dict(self.config)),
+            "key_dim": int(self.key_dim),
+            "net": self.net.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scaler": {"in_n": self._in.n, "in_mean": torch.from_numpy(self._in.mean.copy()),
+                       "in_m2": torch.from_numpy(self._in.m2.copy()), "lab_n": self._lab.n,
+                       "lab_mean": torch.from_numpy(self._lab.mean.copy()),
+                       "lab_m2": torch.from_numpy(self._lab.m2.copy())},
+            "version": self.version, "train_loss": self.train_loss, "train_sets": self.train_sets,
+            "shuffle_rng": self._gen.get_state(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        if state.get("key_dim") is None:
+            return
+        if self.net is None:
+            self._build(int(state["key_dim"]))
+        assert self.net is not None and self.optimizer is not None
+        self.net.load_state_dict(state["net"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        s = state["scaler"]
+        self._in.n, self._in.mean, self._in.m2 = int(s["in_n"]), s["in_mean"].numpy(), s["in_m2"].numpy()
+        self._lab.n, self._lab.mean, self._lab.m2 = int(s["lab_n"]), s["lab_mean"].numpy(), s["lab_m2"].numpy()
+        self.input_mean = self._in.mean.astype(np.float32)
+        self.input_std = self._in.std().astype(np.float32)
+        self.label_mean, self.label_std = float(self._lab.mean[0]), float(self._lab.std()[0])
+        self.version, self.train_loss, self.train_sets = int(state["version"]), float(state["train_loss"]), int(state["train_sets"])
+        self._gen.set_state(state["shuffle_rng"])
+
+    @classmethod
+    def from_state_dict(cls, state: dict, device: str | None = None) -> "QTModel":
+        values = dict(state["config"])
+        if device is not None:
+            values["qt_device"] = device
+        cfg_cls = ComcactQTConfig if values.get("qt_architecture") == "comcact" else QTConfig
+        model = cls(config_from_dict(cfg_cls, values, ignore_unknown=True))
+        model.load_state_dict(state)
+        return model
+
+
+def _plain(d: dict) -> dict:
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
+
+
+def reduction_predictor(qt: QTModel, epochs: int | None = None,
+                        key_fn: Callable = default_key_fn,
+                        batch_size: int | None = None) -> Callable:
+    """The callable a memory's reduce step uses: train QT on the lease's sets, then predict them.
+
+    The lease needs attributes ``representatives`` (Transitions), ``label_history`` (float32
+    flat, oldest first), ``history_lengths`` (uint32 [M], each >= 1) and ``counts``. Returns
+    float32 [M] predictions in value units (the next label of each set; see module docstring).
+    """
+
+    def predict(lease) -> np.ndarray:
+        reps = lease.representatives
+        if len(reps) == 0:
+            return np.zeros(0, np.float32)
+        keys = key_fn(reps)
+        hist = np.asarray(lease.label_history, dtype=np.float32)
+        lengths = np.asarray(lease.history_lengths, dtype=np.int64)
+        qt.fit(keys, hist, lengths, epochs=epochs, batch_size=batch_size)
+        return qt.predict(keys, hist, lengths)
+
+    return predict

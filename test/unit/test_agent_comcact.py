@@ -1,0 +1,166 @@
+"""COMCACT / DDPG learner, OU noise, replay buffer (comper_agent.core)."""
+import copy
+import sys
+from pathlib import Path
+
+_SRC = Path(__file__).resolve().parents[2] / "src"
+for _p in (_SRC / "comper_msgs", _SRC / "comper_agent"):
+    if str(_p) not in sys.path:
+        sys.path.insert(0, str(_p))
+
+import numpy as np
+import pytest
+import torch
+
+from comper_msgs_py.arrays import Transitions
+from comper_msgs_py.params import config_from_dict
+from comper_agent.core.comcact import ComcactLearner
+from comper_agent.core.config import ComcactConfig, DDPGConfig
+from comper_agent.core.noise import OUNoise
+from comper_agent.core.replay import ReplayBuffer
+
+torch.set_num_threads(1)   # tiny models; the shared 2-core machine is often busy
+OBS, ACT = 5, 2
+LOW, HIGH = np.array([-2.0, -1.0]), np.array([2.0, 1.0])
+
+
+def batch(n=64, seed=0, terminated=None, truncated=None):
+    rng = np.random.default_rng(seed)
+    return Transitions(
+        states=rng.normal(size=(n, OBS)).astype(np.float32),
+        actions=rng.uniform(LOW, HIGH, size=(n, ACT)).astype(np.float32),
+        rewards=rng.normal(size=n).astype(np.float32),
+        next_states=rng.normal(size=(n, OBS)).astype(np.float32),
+        terminated=np.zeros(n, bool) if terminated is None else terminated,
+        truncated=np.zeros(n, bool) if truncated is None else truncated)
+
+
+def learner(cls=ComcactConfig, **kw):
+    return ComcactLearner(config_from_dict(cls, kw), OBS, LOW, HIGH)
+
+
+def train_mode_q(lrn, b, actor=None):
+    s = torch.as_tensor(b.states)
+    a = torch.as_tensor(b.actions) if actor is None else None
+    with torch.no_grad():
+        lrn.critic.train()
+        if actor is not None:
+            actor.train()
+            a = actor(s)
+        q = lrn.critic(s, a)
+        lrn.critic.eval()
+        if actor is not None:
+            actor.eval()
+    return q
+
+
+def test_ddpg_update_lowers_td_loss_and_improves_actor():
+    lrn = learner()
+    b = batch()
+    y = lrn.td_targets(b)
+    loss_before = float(torch.mean((train_mode_q(lrn, b) - y) ** 2))
+    actor_before = copy.deepcopy(lrn.actor)
+    m = lrn.update(b)
+    assert m["critic_loss"] == pytest.approx(loss_before, rel=1e-4)
+    loss_after = float(torch.mean((train_mode_q(lrn, b) - y) ** 2))
+    assert loss_after < loss_before
+    # the actor step moved mu towards higher Q under the (updated) critic
+    q_old = train_mode_q(lrn, b, actor_before).mean()
+    q_new = train_mode_q(lrn, b, lrn.actor).mean()
+    assert q_new > q_old
+    assert lrn.updates == 1 and not lrn.actor.training and not lrn.critic.training
+
+
+def test_qt_critic_step_moves_q_towards_qt_target():
+    lrn = learner()
+    b = batch(seed=1)
+    qt = np.full(len(b), 5.0, np.float32)
+    y = torch.as_tensor(b.rewards) + 0.99 * torch.as_tensor(qt)
+    before = float(torch.mean(torch.abs(train_mode_q(lrn, b) - y)))
+    m = lrn.qt_critic_step(b, qt)
+    after = float(torch.mean(torch.abs(train_mode_q(lrn, b) - y)))
+    assert after < before and lrn.qt_steps == 1
+    assert m["qt_target_mean"] == pytest.approx(float(y.mean()), rel=1e-5)
+    with pytest.raises(RuntimeError):
+        learner(DDPGConfig).qt_critic_step(b, qt)
+
+
+def test_terminated_masks_bootstrap_truncated_does_not():
+    lrn = learner()
+    n = 8
+    term = batch(n, seed=2, terminated=np.ones(n, bool))
+    trunc = batch(n, seed=2, truncated=np.ones(n, bool))
+    np.testing.assert_allclose(lrn.td_targets(term).numpy(), term.rewards, atol=1e-6)
+    boot = lrn.td_targets(trunc).numpy() - trunc.rewards
+    assert np.all(np.abs(boot) > 0)
+    np.testing.assert_array_equal(lrn.value_labels(term), np.zeros(n, np.float32))
+    assert np.all(lrn.value_labels(trunc) != 0)
+    qt = np.full(n, 3.0, np.float32)
+    assert lrn.qt_critic_step(term, qt)["qt_target_mean"] == pytest.approx(float(term.rewards.mean()), abs=1e-5)
+    assert lrn.qt_critic_step(trunc, qt)["qt_target_mean"] == pytest.approx(
+        float(trunc.rewards.mean() + 0.99 * 3.0), abs=1e-5)
+
+
+def test_value_labels_q_sa_and_batch_independence():
+    b = batch(16, seed=3)
+    lrn = learner(qt_label="q_sa")
+    np.testing.assert_allclose(lrn.value_labels(b), lrn.q_values(b.states, b.actions), atol=1e-6)
+    lrn = learner()
+    full = lrn.value_labels(b)
+    np.testing.assert_allclose(lrn.value_labels(b.take(slice(0, 3))), full[:3], atol=1e-6)
+
+
+def test_act_bounds_noise_and_soft_update():
+    lrn = learner()
+    obs = np.random.default_rng(0).normal(size=OBS).astype(np.float32)
+    greedy = lrn.act(obs, explore=False)
+    assert greedy.shape == (ACT,) and np.all(greedy >= LOW) and np.all(greedy <= HIGH)
+    np.testing.assert_array_equal(greedy, lrn.act(obs, explore=False))
+    noisy = np.stack([lrn.act(obs, explore=True) for _ in range(50)])
+    assert np.all(noisy >= LOW) and np.all(noisy <= HIGH) and noisy.std(axis=0).min() > 0
+    assert lrn.act(np.stack([obs, obs]), explore=False).shape == (2, ACT)
+    lrn.update(batch())
+    p, pt = next(lrn.critic.parameters()), next(lrn.critic_target.parameters())
+    gap = float((p - pt).detach().abs().sum())
+    lrn.soft_update()
+    assert float((p - pt).detach().abs().sum()) == pytest.approx(gap * (1 - 0.005), rel=1e-3)
+
+
+def test_architecture_matches_appendix_b():
+    lrn = learner()
+    lin = [m for m in lrn.actor.modules() if isinstance(m, torch.nn.Linear)]
+    assert [l.out_features for l in lin] == [400, 300, ACT]
+    assert float(lin[-1].weight.detach().abs().max()) <= 3e-3
+    assert float(lrn.critic.out.weight.detach().abs().max()) <= 3e-4
+    assert lrn.critic.fc2.in_features == 400 + ACT
+    assert learner(critic_action_input="output").critic.out.in_features == 300 + ACT
+    assert lrn.actor_opt.param_groups[0]["lr"] == 1e-3 and lrn.critic_opt.param_groups[0]["lr"] == 2e-3
+
+
+def test_ou_noise_statistics_reset_and_seed():
+    noise = OUNoise(3, theta=0.15, sigma=0.2, dt=1.0, seed=0)
+    xs = np.stack([noise.sample() for _ in range(20000)])
+    assert xs.shape == (20000, 3) and xs.dtype == np.float32
+    assert np.all(np.abs(xs[1000:].mean(axis=0)) < 0.08)
+    np.testing.assert_allclose(xs[1000:].std(axis=0), noise.stationary_std(), rtol=0.1)
+    # temporally correlated: lag-1 autocorrelation = 1 - theta dt
+    x = xs[1000:, 0] - xs[1000:, 0].mean()
+    assert np.corrcoef(x[:-1], x[1:])[0, 1] == pytest.approx(0.85, abs=0.03)
+    noise.reset()
+    np.testing.assert_array_equal(noise.state, np.zeros(3))
+    a, b = OUNoise(2, seed=7), OUNoise(2, seed=7)
+    np.testing.assert_array_equal([a.sample() for _ in range(5)], [b.sample() for _ in range(5)])
+
+
+def test_replay_buffer_fifo_and_uniform_sampling():
+    buf = ReplayBuffer(10, (OBS,), (ACT,), seed=0)
+    b = batch(7)
+    buf.add(b)
+    assert len(buf) == 7
+    buf.add(batch(7, seed=1))
+    assert len(buf) == 10 and buf.pos == 4
+    # the 4 oldest were overwritten by the last 4 of the second batch
+    np.testing.assert_array_equal(buf.states[:4], batch(7, seed=1).states[3:])
+    s = buf.sample(64)
+    assert len(s) == 64 and s.actions.shape == (64, ACT) and s.terminated.dtype == bool
+    s.validate()

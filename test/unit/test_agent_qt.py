@@ -1,0 +1,153 @@
+"""QT (comper_agent.core.qt): training, value units, batch independence, serialisation, L > 1."""
+import json
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+_SRC = Path(__file__).resolve().parents[2] / "src"
+for _p in (_SRC / "comper_msgs", _SRC / "comper_agent"):
+    if str(_p) not in sys.path:
+        sys.path.insert(0, str(_p))
+
+import numpy as np
+import pytest
+import torch
+
+from comper_msgs_py.arrays import Transitions
+from comper_msgs_py.params import config_from_dict
+from comper_agent.core.config import ComcactQTConfig, QTConfig
+from comper_agent.core.qt import (QTModel, default_key_fn, history_windows, newest_labels,
+                                  reduction_predictor)
+
+torch.set_num_threads(1)   # tiny models; the shared 2-core machine is often busy
+
+
+def synthetic(m=256, d=8, seed=0, max_hist=4):
+    rng = np.random.default_rng(seed)
+    keys = (rng.normal(size=(m, d)) * 3 + 5).astype(np.float32)
+    w = rng.normal(size=d).astype(np.float32)
+    target = (10.0 * np.tanh((keys - 5) @ w / 6) + 100.0).astype(np.float32)
+    lengths = rng.integers(1, max_hist + 1, size=m).astype(np.uint32)
+    hist = []
+    for i in range(m):
+        hist.extend(list(rng.normal(100, 5, size=lengths[i] - 1)) + [target[i]])
+    return keys, np.asarray(hist, np.float32), lengths, target
+
+
+def cfg(**kw):
+    return config_from_dict(QTConfig, {"qt_lr": 2e-3, **kw})
+
+
+def test_fit_reduces_loss_and_predicts_in_value_units():
+    keys, hist, lengths, target = synthetic()
+    qt = QTModel(cfg(qt_batch_size=32, qt_lr=4e-3))
+    first = qt.fit(keys, hist, lengths, epochs=1)
+    for _ in range(5):
+        last = qt.fit(keys, hist, lengths, epochs=4)
+    assert last < 0.5 * first
+    pred = qt.predict(keys)
+    assert pred.dtype == np.float32 and pred.shape == (256,)
+    mse = float(np.mean((pred - target) ** 2))
+    assert mse < 0.3 * float(np.var(target))          # learned, in value units
+    assert abs(float(pred.mean()) - float(target.mean())) < 2.0
+    assert qt.version == 6 and qt.train_sets == 256
+
+
+def test_predictions_are_batch_independent():
+    keys, hist, lengths, _ = synthetic(m=64)
+    qt = QTModel(cfg(), key_dim=keys.shape[1])
+    qt.fit(keys, hist, lengths, epochs=2)
+    full = qt.predict(keys)
+    perm = np.random.default_rng(1).permutation(64)
+    np.testing.assert_allclose(qt.predict(keys[perm]), full[perm], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(qt.predict(keys[:3]), full[:3], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(qt.predict(keys[5:6]), full[5:6], rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("config_cls,seq", [(QTConfig, 1), (ComcactQTConfig, 1), (QTConfig, 3)])
+def test_to_arrays_round_trip(config_cls, seq):
+    keys, hist, lengths, _ = synthetic(m=48)
+    qt = QTModel(config_from_dict(config_cls, {"qt_sequence_length": seq}))
+    qt.fit(keys, hist, lengths, epochs=1)
+    arrays = qt.to_arrays()
+    json.dumps(arrays["config"])                      # travels as config_json
+    assert all(v.dtype == np.float32 for v in arrays["tensors"].values())
+    assert arrays["input_mean"].shape == (keys.shape[1],) and arrays["version"] == 1
+    clone = QTModel.from_arrays(**arrays)
+    np.testing.assert_array_equal(clone.predict(keys, hist, lengths), qt.predict(keys, hist, lengths))
+    assert clone.config == qt.config and clone.version == 1
+
+
+def test_comcact_architecture():
+    qt = QTModel(ComcactQTConfig(), key_dim=5)
+    assert [l.hidden_size for l in qt.net.lstms] == [64, 64]
+    assert qt.net.dense.out_features == 32
+    assert float(qt.net.out.weight.detach().abs().max()) <= 3e-4
+    assert qt.net.output_activation == "linear"
+    qt2 = QTModel(QTConfig(), key_dim=5)
+    assert [l.hidden_size for l in qt2.net.lstms] == [64, 32, 32] and qt2.net.dense.out_features == 18
+    assert isinstance(qt2.optimizer, torch.optim.RMSprop)
+    g = qt2.optimizer.param_groups[0]
+    assert (g["lr"], g["alpha"], g["eps"], g["momentum"]) == (2.5e-4, 0.9, 1e-10, 0.0)
+
+
+def test_history_windows_left_pad():
+    hist = np.array([1, 2, 3, 10, 20], np.float32)      # set 0: [1, 2, 3], set 1: [10], set 2: [20]
+    lengths = np.array([3, 1, 1], np.uint32)
+    labels, present = history_windows(hist, lengths, 3, exclude_newest=True)
+    np.testing.assert_array_equal(labels, [[0, 1, 2], [0, 0, 0], [0, 0, 0]])
+    np.testing.assert_array_equal(present, [[False, True, True], [False] * 3, [False] * 3])
+    labels, present = history_windows(hist, lengths, 2, exclude_newest=False)
+    np.testing.assert_array_equal(labels, [[2, 3], [0, 10], [0, 20]])
+    np.testing.assert_array_equal(newest_labels(hist, lengths), [3, 10, 20])
+
+
+def test_sequence_path_learns_from_history():
+    # target = newest label = the previous label + 50: only the history can tell it
+    rng = np.random.default_rng(0)
+    m, L = 256, 3
+    keys = rng.normal(size=(m, 4)).astype(np.float32)
+    lengths = np.full(m, 3, np.uint32)
+    prev = rng.uniform(0, 100, size=m).astype(np.float32)
+    hist = np.stack([rng.uniform(0, 100, size=m), prev, prev + 50], axis=1).astype(np.float32).ravel()
+    qt = QTModel(cfg(qt_sequence_length=L, qt_lr=3e-3))
+    losses = [qt.fit(keys, hist, lengths, epochs=4) for _ in range(5)]
+    assert losses[-1] < 0.1              # scaled units: 1.0 = predicting the mean
+    # predict uses the whole history (newest included) to forecast the next label
+    pred = qt.predict(keys, hist, lengths)
+    assert pred.shape == (m,) and np.isfinite(pred).all()
+    # without history the key-only (all padded) input still gives finite value-unit outputs
+    assert np.isfinite(qt.predict(keys)).all()
+    # single-label sets (all padding) are accepted for training
+    qt.fit(keys[:4], hist[:4], np.ones(4, np.uint32))
+
+
+def test_reduction_predictor_on_atari_like_lease():
+    rng = np.random.default_rng(0)
+    m = 40
+    reps = Transitions(states=rng.integers(0, 256, size=(m, 84, 84), dtype=np.uint8),
+                       actions=rng.integers(0, 18, size=m).astype(np.int64),
+                       rewards=rng.normal(size=m).astype(np.float32),
+                       next_states=rng.integers(0, 256, size=(m, 84, 84), dtype=np.uint8),
+                       terminated=np.zeros(m, bool), truncated=np.zeros(m, bool))
+    keys = default_key_fn(reps)
+    assert keys.shape == (m, 14114) and keys.dtype == np.float32 and keys.max() <= 18
+    lengths = rng.integers(1, 5, size=m).astype(np.uint32)
+    hist = rng.normal(1, 0.1, size=int(lengths.sum())).astype(np.float32)
+    lease = SimpleNamespace(representatives=reps, label_history=hist, history_lengths=lengths,
+                            counts=lengths.copy())
+    qt = QTModel(QTConfig())
+    pred = reduction_predictor(qt, epochs=1)(lease)
+    assert pred.shape == (m,) and pred.dtype == np.float32 and qt.version == 1
+    assert abs(float(pred.mean()) - 1.0) < 0.5        # value units, not scaled units
+    empty = SimpleNamespace(representatives=reps.take(slice(0, 0)), label_history=hist[:0],
+                            history_lengths=lengths[:0], counts=lengths[:0])
+    assert reduction_predictor(qt)(empty).shape == (0,)
+
+
+def test_rejects_bad_input():
+    qt = QTModel(QTConfig(), key_dim=3)
+    with pytest.raises(ValueError):
+        qt.predict(np.zeros((2, 4), np.float32))
+    with pytest.raises(ValueError):
+        qt.fit(np.zeros((2, 3), np.float32), np.array([1.0, np.nan], np.float32), np.ones(2, np.uint32))
