@@ -22,5 +22,10 @@ setup(
     entry_points={"console_scripts": [
         "qt_trainer_node = comper_agent.qt_trainer_node:main",
         "comcact_node = comper_agent.comcact_node:main",
+        "comper_node = comper_agent.comper_node:main",
+        "recorder_node = comper_agent.recorder_node:main",
+        "evaluate = comper_agent.evaluate:main",
+        "bag_to_memory = comper_agent.bag_tools:bag_to_memory_main",
+        "export_dataset = comper_agent.bag_tools:export_dataset_main",
     ]},
 )
