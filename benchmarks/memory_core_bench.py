@@ -63,6 +63,7 @@ def run(key, n_ident, args):
                        max_store_batch=max(args.batch, min(args.fill_batch, n_ident)), delta=1e-4)
     fill_cap = cfg.max_store_batch
     mem = CompactMemory(cfg)
+    mem.index_engine = args.engine  # None: by key size (the default memory's choice)
     fill = min(args.fill_batch, fill_cap)
     t0 = time.perf_counter()
     kept = []
@@ -120,7 +121,8 @@ def run(key, n_ident, args):
     return {"key": key, "identities": st["identities"], "fill_tps": n_ident / fill_s,
             "store_tps": store_rate, "flat_tps": flat_rate, "sample_cps": sample_rate,
             "fifo_cps": fifo_rate, "bytes_per_id": per_ident, "raw_key_bytes": 4 * key,
-            "ratio": (per_ident - hist_bytes) / (4 * key), "nlist": mem.index.nlist}
+            "ratio": (per_ident - hist_bytes) / (4 * key), "nlist": mem.index.nlist,
+            "engine": getattr(mem.index, "engine", "ivf"), "ratio_hist": per_ident / (4 * key + hist_bytes)}
 
 
 def main():
@@ -136,6 +138,8 @@ def main():
     ap.add_argument("--sample-k", type=int, default=32, help="entries per sample call")
     ap.add_argument("--sample-calls", type=int, default=2000, help="measured sample calls")
     ap.add_argument("--fifo-max", type=int, default=100000, help="largest FIFO baseline buffer")
+    ap.add_argument("--engine", choices=("grid", "ivf"), default=None,
+                    help="force an index engine (default: the memory's choice by key size)")
     ap.add_argument("--threads", type=int, default=0, help="faiss OpenMP threads (0: faiss default)")
     args = ap.parse_args()
     if args.threads:
@@ -147,8 +151,8 @@ def main():
     else:
         sizes = [(k, n) for k in (26, 770) for n in (10_000, 100_000, 1_000_000)] + \
                 [(14114, 10_000), (14114, 100_000)]
-    cols = ["key", "identities", "nlist", "fill_tps", "store_tps", "flat_tps", "sample_cps", "fifo_cps",
-            "bytes_per_id", "raw_key_bytes", "ratio"]
+    cols = ["key", "identities", "engine", "nlist", "fill_tps", "store_tps", "flat_tps", "sample_cps", "fifo_cps",
+            "bytes_per_id", "raw_key_bytes", "ratio", "ratio_hist"]
     print(" | ".join(cols), flush=True)
     for key, n in sizes:
         r = run(key, n, args)

@@ -157,3 +157,83 @@ def test_exact_after_evictions():
         assert mem.stats()["identities"] <= 300
         assert mem.index.ntotal == mem.stats()["identities"]
     assert mem.stats()["evictions"] > 0
+
+
+# ---------------------------------------------------------------- grid engine / hybrid
+import comper_memory.core.index as index_mod  # noqa: E402
+
+
+def _mem(engine, **kw):
+    mem = CompactMemory(MemoryConfig(**{**FAST_INDEX, **kw}))
+    mem.index_engine = engine
+    return mem
+
+
+@pytest.mark.parametrize("engine", ["grid", "ivf"])
+@pytest.mark.parametrize("delta", [0.0, 1e-3, 0.3])
+def test_engines_match_reference_with_evictions(engine, delta):
+    """Both engines equal the float64 sequential reference, through evictions (lazy removal,
+    stale-triggered rebuilds) and growth rebuilds (re-fitted PCA grid)."""
+    rng = np.random.default_rng(11)
+    mem = _mem(engine, delta=delta, rtm_capacity=250, max_store_batch=120)
+    ref = Reference(delta)
+    pool = make(rng, 300)
+    for step in range(12):
+        t = Transitions.concatenate([make(rng, 40), pool.take(rng.integers(0, 300, 40)),
+                                     perturbed(rng, pool.take(rng.integers(0, 300, 40)),
+                                               np.sqrt(max(delta, 1e-6)) / 2)])
+        t = t.take(rng.permutation(len(t)))
+        np.testing.assert_array_equal(mem.store(t).identity_ids, ref.store(t))
+        live = set(mem.ids_sorted.tolist())
+        ref.remove(np.asarray([i for i in ref.ids if i not in live]))
+        assert mem.index.ntotal == mem.stats()["identities"]
+    assert mem.index.engine == engine and mem.stats()["evictions"] > 0
+    if engine == "grid":
+        assert mem.index.rebuilds >= 2
+
+
+def test_grid_dense_cells_chunked_and_norm_growth(monkeypatch):
+    """Many points in the same cells (huge delta, tiny candidate chunks) and keys whose norm
+    later grows enough to force a coarser cell: still exact."""
+    monkeypatch.setattr(index_mod, "_PAIR_CHUNK", 7)
+    rng = np.random.default_rng(12)
+    mem = _mem("grid", delta=2.0)
+    ref = Reference(2.0)
+    small = make(rng, 60)
+    small.states[:] *= np.float32(0.05)
+    np.testing.assert_array_equal(mem.store(small).identity_ids, ref.store(small))
+    big = make(rng, 60)
+    big.states[:] *= np.float32(1e7)  # norm growth: projection error bound exceeds the cell
+    before = mem.index.rebuilds
+    np.testing.assert_array_equal(mem.store(big).identity_ids, ref.store(big))
+    assert mem.index.rebuilds > before
+    mix = Transitions.concatenate([perturbed(rng, small, 0.3), perturbed(rng, big, 0.3)])
+    np.testing.assert_array_equal(mem.store(mix).identity_ids, ref.store(mix))
+
+
+def test_within_batch_chain_is_not_transitive():
+    """A creates; B (near A) joins A; C is near B but not near A: C creates (B is no identity)."""
+    base = make(np.random.default_rng(13), 1)
+    rows = []
+    for shift in (0.0, 0.8, 1.6):
+        s = base.states.copy()
+        s[:, 0] += np.float32(shift)
+        rows.append(Transitions(s, base.actions, base.rewards, base.next_states, base.terminated,
+                                base.truncated, value_labels=base.value_labels))
+    t = Transitions.concatenate(rows)
+    for engine in ("grid", "ivf"):
+        mem = _mem(engine, delta=1.0)
+        np.testing.assert_array_equal(mem.store(t).identity_ids, [0, 0, 1])
+
+
+def test_grid_snapshot_restore_rebuilds_index(tmp_path):
+    rng = np.random.default_rng(14)
+    mem = _mem("grid", delta=1e-2)
+    base = make(rng, 200)
+    mem.store(base)
+    mem.save_snapshot(str(tmp_path / "s"))
+    other = _mem("grid", delta=1e-2)
+    other.load_snapshot(str(tmp_path / "s"))
+    q = perturbed(rng, base.take(np.arange(0, 200, 3)), 0.02)
+    np.testing.assert_array_equal(mem.store(q).identity_ids, other.store(q).identity_ids)
+    assert other.index.ntotal == other.stats()["identities"]

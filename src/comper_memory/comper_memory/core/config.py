@@ -53,14 +53,16 @@ class MemoryConfig:
     index_projection_dim: int = param(
         8, "dimensions of the orthonormal projection the exact index partitions on "
         "(|P(x - y)| <= |x - y|, so no similar pair is missed; larger = fewer exact re-checks, "
-        "more memory)", minimum=1, maximum=256)
+        "more memory); the grid engine (default) uses min(3, this) PCA directions, the faiss IVF "
+        "engine this many", minimum=1, maximum=256)
     index_min_train: int = param(
-        2048, "identities before the index partitions into k-means lists (below: one list)",
+        2048, "identities before the index fits its partition to the data (grid: PCA directions and "
+        "extent; IVF: k-means lists, one list below)",
         minimum=16)
     index_list_size: int = param(
-        64, "target identities per index list (nlist = identities / this, capped)", minimum=8)
+        64, "target identities per index list (nlist = identities / this, capped; IVF engine only)", minimum=8)
     index_max_lists: int = param(
-        4096, "largest number of index lists", minimum=1)
+        4096, "largest number of index lists (IVF engine only)", minimum=1)
     index_rebuild_growth: float = param(
         4.0, "rebuild (re-train) the index partition when identities grow by this factor",
         minimum=1.5)

@@ -35,7 +35,7 @@ import numpy as np
 
 from .keys import exact_sq_dist
 
-__all__ = ["ExactIndex", "ResolveResult"]
+__all__ = ["ExactIndex", "GridIndex", "ResolveResult", "make_index"]
 
 _U32 = float(np.finfo(np.float32).eps)  # 1.19e-7 (2 x unit roundoff, conservative)
 _EXACT_CHUNK_VALUES = 1 << 22  # float64 values per exact re-check chunk (32 MiB)
@@ -59,6 +59,8 @@ class ResolveResult:
 
 class ExactIndex:
     """Exact radius-delta nearest-identity index (see module docstring)."""
+
+    engine = "ivf"
 
     def __init__(self, key_dim: int, delta: float, *, projection_dim: int = 8,
                  min_train: int = 2048, list_size: int = 256, max_lists: int = 4096,
@@ -360,3 +362,421 @@ class ExactIndex:
                         batch[i] = js[k]
                         creates[i] = False
         return ResolveResult(existing, batch, checked)
+
+
+# ====================================================================== grid engine
+_GRID_BITS = 21
+_GRID_MAX = (1 << _GRID_BITS) - 1
+_EPS64 = float(np.finfo(np.float64).eps)
+_PAIR_CHUNK = 1 << 21  # candidate pairs expanded at once (bounds temporary memory)
+
+
+def _expand(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(row, position) for every position in [lo[r], hi[r]) of every row r (vectorised)."""
+    cnt = np.maximum(hi - lo, 0).ravel()
+    tot = int(cnt.sum())
+    if tot == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    row = np.repeat(np.arange(len(cnt)), cnt)
+    start = np.cumsum(cnt) - cnt
+    pos = np.repeat(lo.ravel() - start, cnt) + np.arange(tot)
+    return row, pos
+
+
+class GridIndex:
+    """Exact radius-delta index over a sorted-cell-code grid (low-dimensional keys).
+
+    Why it is exact (no identity within delta can be missed), with r = sqrt(delta):
+
+    * z = P x with P [m, D] having orthonormal rows (m <= 3: PCA directions of the stored keys,
+      found inside a random 64-d orthonormal subspace when D > 64), so every coordinate of
+      P(x - y) is at most |x - y| (1 + e_o), e_o measured from |P P^T - I|. z is computed in
+      float64; its rounding error is below (D + 2) eps64 (|x| + 1) per coordinate, and ``err``
+      covers query and stored point.
+    * Cells are cubes of side c >= (r (1 + e_o) + err)(1 + 1e-7): two points within r have
+      cell indices floor((z - o)/c) that differ by at most 1 per axis (the relative rounding of
+      the division, < 1e-9 cells, is far below the 1e-7 margin). Indices are clipped to
+      [0, 2^21 - 1] (monotone, 1-Lipschitz: neighbours stay neighbours), so c can also be
+      made coarse enough for any delta, 0 included.
+    * A cell's code packs its m indices (21 bits each, lexicographic), so the 3 cells along the
+      last axis of each (m-1)-neighbour column are one contiguous code range: a query costs 3^(m-1)
+      pairs of ``np.searchsorted`` over the sorted codes (O(log n), vectorised over the batch).
+    * Every candidate that is still alive is re-checked against its full key in float64
+      (``exact_sq_dist``); the grid only decides which identities are looked at.
+
+    Storage: two sorted levels (code int64, id int64): a large main level and a small level that
+    new identities are inserted into (``np.insert``, O(small)); the small level is merged into
+    the main one when it exceeds main/16 (amortised O(1) per identity). Removal is lazy: evicted
+    ids stay as stale entries (ids are never reused, and candidates are filtered with
+    ``alive``) until a rebuild, which happens when stale entries exceed a quarter of the
+    entries, when identities grew ``rebuild_growth``-fold since the last build (re-fitting the
+    PCA directions and the grid extent), or when a key's norm would need a coarser cell.
+    """
+
+    engine = "grid"
+
+    def __init__(self, key_dim: int, delta: float, *, keys_of: Callable[[np.ndarray], np.ndarray],
+                 alive: Callable[[np.ndarray], np.ndarray], live_ids: Callable[[], np.ndarray],
+                 grid_dims: int = 3, min_train: int = 2048, rebuild_growth: float = 4.0,
+                 seed: int = 0):
+        self.key_dim = int(key_dim)
+        self.delta = float(delta)
+        self.r = float(np.sqrt(self.delta))
+        self.m = int(min(grid_dims, self.key_dim, 3))
+        self.min_train = int(min_train)
+        self.rebuild_growth = float(rebuild_growth)
+        self.seed = int(seed)
+        self._keys_of, self._alive, self._live_ids = keys_of, alive, live_ids
+        rng = np.random.default_rng(seed)
+        q, _ = np.linalg.qr(rng.standard_normal((self.key_dim, self.m)))
+        self._set_projection(np.ascontiguousarray(q.T))
+        self.max_key_norm = 0.0
+        self.origin: np.ndarray | None = None
+        self.cell = 0.0
+        self.codes = np.zeros(0, np.int64)
+        self.ids = np.zeros(0, np.int64)
+        self.zs = np.zeros((0, self.m), np.float32)
+        self.scodes = np.zeros(0, np.int64)
+        self.sids = np.zeros(0, np.int64)
+        self.szs = np.zeros((0, self.m), np.float32)
+        self.stale = 0
+        self.n_at_build = 0
+        self.rebuilds = 0
+        sh = [_GRID_BITS * (self.m - 1 - d) for d in range(self.m)]
+        self._shift = np.asarray(sh, dtype=np.int64)
+        offs = np.array(np.meshgrid(*[[-1, 0, 1]] * (self.m - 1), indexing="ij")).reshape(self.m - 1, -1).T \
+            if self.m > 1 else np.zeros((1, 0), np.int64)
+        self._offs = offs.astype(np.int64)  # [3^(m-1), m-1]
+
+    # ------------------------------------------------------------------ geometry
+    def _set_projection(self, P: np.ndarray) -> None:
+        self.P = np.ascontiguousarray(P, dtype=np.float64)
+        g = self.P @ self.P.T - np.eye(self.m)
+        self.e_o = float(np.sqrt((g * g).sum())) + 1e-15
+
+    def _err(self) -> float:
+        return 2.0 * (self.key_dim + 2) * _EPS64 * (self.max_key_norm + 1.0) * 4.0
+
+    def _min_cell(self) -> float:
+        return (self.r * (1.0 + self.e_o) + self._err()) * (1.0 + 1e-7) + 1e-300
+
+    def _radius_proj(self) -> float:
+        """Radius in projected space containing every stored point within r of a query,
+        including the float32 rounding of stored projections (|z| <= |x| (1 + e_o))."""
+        cast = 2.0 * _U32 * (self.max_key_norm * (1.0 + self.e_o) + 1.0)
+        return (self.r * (1.0 + self.e_o) + self._err() + cast) * (1.0 + 1e-7)
+
+    def _near(self, zq: np.ndarray, zc: np.ndarray) -> np.ndarray:
+        """Conservative projected-distance filter (never drops a point within r)."""
+        d = zq - zc
+        d2 = np.einsum("ij,ij->i", d, d)
+        rp = self._radius_proj()
+        return d2 <= rp * rp * (1.0 + 1e-9) + 1e-300
+
+    def _zproj(self, keys: np.ndarray) -> np.ndarray:
+        """float64 P x, in row blocks of ~2 MiB (the float64 copy of a block stays in cache)."""
+        keys = np.asarray(keys)
+        n = len(keys)
+        step = max(1, (1 << 18) // max(1, self.key_dim))
+        if n <= step:
+            return keys.astype(np.float64) @ self.P.T
+        z = np.empty((n, self.m))
+        PT = self.P.T
+        for s in range(0, n, step):
+            z[s:s + step] = keys[s:s + step].astype(np.float64) @ PT
+        return z
+
+    def _fit_grid(self, z: np.ndarray) -> None:
+        c = self._min_cell()
+        if len(z):
+            lo, hi = z.min(axis=0), z.max(axis=0)
+            span = float((hi - lo).max())
+            c = max(c, span / (_GRID_MAX - 4))
+            self.origin = lo - 2.0 * c
+        else:
+            self.origin = np.zeros(self.m)
+        self.cell = c
+
+    def _code(self, z: np.ndarray) -> np.ndarray:
+        return (self._cells(z) << self._shift).sum(axis=1)
+
+    def _cells(self, z: np.ndarray) -> np.ndarray:
+        t = np.floor((z - self.origin) / self.cell)
+        np.clip(t, 0, _GRID_MAX, out=t)
+        return t.astype(np.int64)
+
+    # ------------------------------------------------------------------ public
+    @property
+    def ntotal(self) -> int:
+        return int(len(self.codes) + len(self.scodes) - self.stale)
+
+    @property
+    def nlist(self) -> int:
+        """Occupied grid cells (the partition's size; tests and benchmarks report it)."""
+        c = np.concatenate([self.codes, self.scodes])
+        return int(len(np.unique(c))) if len(c) else 0
+
+    def bytes_used(self) -> int:
+        return int(self.codes.nbytes + self.ids.nbytes + self.zs.nbytes + self.scodes.nbytes +
+                   self.sids.nbytes + self.szs.nbytes + self.P.nbytes)
+
+    def project(self, keys: np.ndarray) -> np.ndarray:
+        """float64 projections [n, m] of float32 keys (grid parameters fixed on first use)."""
+        keys = np.asarray(keys, dtype=np.float32)
+        if len(keys):
+            nrm = float(np.sqrt(np.einsum("ij,ij->i", keys, keys, dtype=np.float64).max()))
+            if nrm > self.max_key_norm:
+                self.max_key_norm = nrm
+                if self.origin is not None and self._min_cell() > self.cell:
+                    self.rebuild(refit=False)  # a larger key needs a coarser cell
+        z = self._zproj(keys)
+        if self.origin is None:
+            self._fit_grid(z)
+        return z
+
+    def add(self, ids: np.ndarray, z: np.ndarray) -> None:
+        if not len(ids):
+            return
+        codes = self._code(z)
+        o = np.argsort(codes, kind="stable")
+        codes, ids, z32 = codes[o], np.asarray(ids, np.int64)[o], z[o].astype(np.float32)
+        pos = np.searchsorted(self.scodes, codes, side="right")
+        self.scodes = np.insert(self.scodes, pos, codes)
+        self.sids = np.insert(self.sids, pos, ids)
+        self.szs = np.insert(self.szs, pos, z32, axis=0)
+        if len(self.scodes) > max(4096, len(self.codes) // 16):
+            self._merge()
+        self.maybe_rebuild()
+
+    def _merge(self) -> None:
+        pos = np.searchsorted(self.codes, self.scodes, side="right")
+        self.codes = np.insert(self.codes, pos, self.scodes)
+        self.ids = np.insert(self.ids, pos, self.sids)
+        self.zs = np.insert(self.zs, pos, self.szs, axis=0)
+        self.scodes = np.zeros(0, np.int64)
+        self.sids = np.zeros(0, np.int64)
+        self.szs = np.zeros((0, self.m), np.float32)
+
+    def remove(self, ids: np.ndarray) -> int:
+        """Lazy: the caller guarantees the ids are indexed and no longer alive."""
+        self.stale += len(ids)
+        return len(ids)
+
+    def maybe_rebuild(self, force: bool = False) -> bool:
+        n = self.ntotal
+        entries = len(self.codes) + len(self.scodes)
+        grow = n >= self.min_train and n >= self.rebuild_growth * max(self.n_at_build, 1)
+        if force or grow or self.stale > max(1024, entries // 4):
+            self.rebuild(refit=force or grow)
+            return True
+        return False
+
+    def rebuild(self, refit: bool = True) -> None:
+        """Re-index every live identity (refit: new PCA directions and grid extent)."""
+        ids = np.asarray(self._live_ids(), dtype=np.int64)
+        n = len(ids)
+        step = max(1, (1 << 22) // max(1, self.key_dim))
+        if refit and n >= 2:
+            rng = np.random.default_rng(self.seed + n)
+            samp = np.sort(rng.choice(n, size=min(n, 20000), replace=False))
+            X = self._keys_of(ids[samp]).astype(np.float64)
+            if self.key_dim > 64:
+                q, _ = np.linalg.qr(rng.standard_normal((self.key_dim, 64)))
+                R = np.ascontiguousarray(q.T)  # [64, D] orthonormal rows
+                X = X @ R.T
+            else:
+                R = None
+            X -= X.mean(axis=0)
+            w, V = np.linalg.eigh(X.T @ X)
+            top = V[:, np.argsort(w)[::-1][:self.m]].T  # [m, d] orthonormal rows
+            P = top if R is None else top @ R
+            self._set_projection(P)
+        z = np.empty((n, self.m))
+        for s in range(0, n, step):
+            keys = self._keys_of(ids[s:s + step])
+            if len(keys):
+                self.max_key_norm = max(self.max_key_norm, float(np.sqrt(
+                    np.einsum("ij,ij->i", keys, keys, dtype=np.float64).max())))
+            z[s:s + step] = self._zproj(keys)
+        if refit or self.origin is None:
+            self._fit_grid(z)
+        else:
+            self.cell = max(self.cell, self._min_cell())
+        codes = self._code(z) if n else np.zeros(0, np.int64)
+        o = np.argsort(codes, kind="stable")
+        self.codes, self.ids, self.zs = codes[o], ids[o], z[o].astype(np.float32)
+        self.scodes = np.zeros(0, np.int64)
+        self.sids = np.zeros(0, np.int64)
+        self.szs = np.zeros((0, self.m), np.float32)
+        self.stale = 0
+        self.n_at_build = n
+        self.rebuilds += 1
+
+    # ------------------------------------------------------------------ search
+    def _ranges(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per query and neighbour column: (lo_code, hi_code, valid) [n, 3^(m-1)]."""
+        m = self.m
+        last = cells[:, m - 1]
+        lo_last = np.maximum(last - 1, 0)[:, None]
+        hi_last = np.minimum(last + 1, _GRID_MAX)[:, None]
+        if m == 1:
+            return lo_last, hi_last, np.ones_like(lo_last, dtype=bool)
+        head = cells[:, None, :m - 1] + self._offs[None, :, :]       # [n, k, m-1]
+        valid = ((head >= 0) & (head <= _GRID_MAX)).all(axis=2)
+        base = (head << self._shift[None, None, :m - 1]).sum(axis=2)
+        return base + lo_last, base + hi_last, valid
+
+    @staticmethod
+    def _lookup(levels, lo_code, hi_code, valid):
+        """[(lo, hi)] position ranges in each sorted code array of ``levels``."""
+        # needles searched in increasing order (numpy's binary search then reuses its bounds)
+        needles = np.concatenate([lo_code.ravel(), hi_code.ravel() + 1])  # side=right == left of +1
+        o = np.argsort(needles)
+        sn = needles[o]
+        k = lo_code.size
+        out = []
+        for codes_sorted in levels:
+            pos = np.empty(len(needles), np.int64)
+            pos[o] = np.searchsorted(codes_sorted, sn, side="left")
+            lo = pos[:k].reshape(lo_code.shape)
+            hi = pos[k:].reshape(lo_code.shape)
+            out.append((lo, np.where(valid, hi, lo)))
+        return out
+
+    def _query_chunks(self, cnt: np.ndarray):
+        """Split queries into chunks whose expanded candidate count stays bounded."""
+        n = len(cnt)
+        if n == 0:
+            return
+        cum = np.cumsum(cnt)
+        s = 0
+        while s < n:
+            base = cum[s - 1] if s else 0
+            e = int(np.searchsorted(cum, base + _PAIR_CHUNK, side="right"))
+            e = max(e, s + 1)
+            yield s, min(e, n)
+            s = e
+
+    def candidates_of(self, z: np.ndarray):
+        """Yield (query, id) arrays of alive stored identities in neighbour cells (chunked)."""
+        n = len(z)
+        if n == 0 or self.ntotal == 0:
+            return
+        lo_c, hi_c, valid = self._ranges(self._cells(z))
+        levels = [(c, i, zz) for c, i, zz in ((self.codes, self.ids, self.zs),
+                                              (self.scodes, self.sids, self.szs)) if len(c)]
+        spans = self._lookup([c for c, _, _ in levels], lo_c, hi_c, valid)
+        cnt = sum((hi - lo).sum(axis=1) for lo, hi in spans)
+        for s, e in self._query_chunks(cnt):
+            qs, cs = [], []
+            for (codes, ids, zz), (lo, hi) in zip(levels, spans):
+                row, pos = _expand(lo[s:e], hi[s:e])
+                q = s + row // lo.shape[1]
+                near = self._near(z[q], zz[pos])
+                qs.append(q[near])
+                cs.append(ids[pos[near]])
+            q, c = np.concatenate(qs), np.concatenate(cs)
+            if self.stale and len(c):
+                ok = self._alive(c)
+                q, c = q[ok], c[ok]
+            yield q, c
+
+    def _batch_pairs(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pairs (i, j), j < i, of batch items in neighbour cells (a superset of similar pairs)."""
+        n = len(z)
+        codes = self._code(z)
+        order = np.argsort(codes, kind="stable")
+        sc = codes[order]
+        lo_c, hi_c, valid = self._ranges(self._cells(z))
+        (lo, hi), = self._lookup([sc], lo_c, hi_c, valid)
+        cnt = (hi - lo).sum(axis=1) - 1  # minus the item itself
+        if int(cnt.sum()) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        pis, pjs = [], []
+        for s, e in self._query_chunks(cnt + 1):
+            row, pos = _expand(lo[s:e], hi[s:e])
+            i = s + row // lo.shape[1]
+            j = order[pos]
+            keep = j < i
+            i, j = i[keep], j[keep]
+            keep = self._near(z[i], z[j])
+            pis.append(i[keep])
+            pjs.append(j[keep])
+        return np.concatenate(pis), np.concatenate(pjs)
+
+    def resolve(self, keys: np.ndarray, z: np.ndarray, key_fn=None) -> ResolveResult:
+        """Decide, exactly and as if sequentially, what each transition of a batch joins."""
+        n = len(keys)
+        delta = self.delta
+        existing = np.full(n, -1, dtype=np.int64)
+        best_d = np.full(n, np.inf)
+        checked = 0
+        step = max(1, _EXACT_CHUNK_VALUES // max(1, self.key_dim))
+        for q, cand in self.candidates_of(z):
+            if not len(cand):
+                continue
+            uniq, inv = np.unique(cand, return_inverse=True)
+            ukeys = self._keys_of(uniq)
+            dist = np.empty(len(cand))
+            for s in range(0, len(cand), step):
+                dist[s:s + step] = exact_sq_dist(keys[q[s:s + step]], ukeys[inv[s:s + step]])
+            checked += len(cand)
+            ok = dist <= delta
+            if ok.any():
+                q, c, d = q[ok], cand[ok], dist[ok]
+                order = np.lexsort((c, d, q))  # by query, then distance, then id
+                q, c, d = q[order], c[order], d[order]
+                first = np.ones(len(q), dtype=bool)
+                first[1:] = q[1:] != q[:-1]
+                q, c, d = q[first], c[first], d[first]
+                better = d < best_d[q]  # chunks hold disjoint queries; kept for safety
+                existing[q[better]] = c[better]
+                best_d[q[better]] = d[better]
+        batch = np.full(n, -1, dtype=np.int64)
+        if n > 1:
+            pi, pj = self._batch_pairs(z)
+            checked += len(pi)
+            batch = _sequential_batch(keys, pi, pj, existing, best_d, delta, step)
+        return ResolveResult(existing, batch, checked)
+
+
+def _sequential_batch(keys, pi, pj, existing, best_d, delta, step) -> np.ndarray:
+    """Within-batch joins, as if the batch were stored one transition at a time.
+
+    Vectorised first: exact distances of every candidate pair; only pairs within delta whose
+    earlier item j matched no existing identity (so it may create one) and that are strictly
+    nearer than i's best existing match can change a decision. Only the items i of those pairs
+    go through the sequential pass (in increasing i, so j's own decision is final when i is
+    visited)."""
+    n = len(keys)
+    batch = np.full(n, -1, dtype=np.int64)
+    if not len(pi):
+        return batch
+    keep = existing[pj] < 0
+    pi, pj = pi[keep], pj[keep]
+    if not len(pi):
+        return batch
+    d = np.empty(len(pi))
+    for s in range(0, len(pi), step):
+        d[s:s + step] = exact_sq_dist(keys[pi[s:s + step]], keys[pj[s:s + step]])
+    keep = (d <= delta) & (d < best_d[pi])
+    pi, pj, d = pi[keep], pj[keep], d[keep]
+    if not len(pi):
+        return batch
+    order = np.lexsort((pj, d, pi))  # by i, then distance, then earliest j
+    pi, pj, d = pi[order], pj[order], d[order]
+    creates = existing < 0
+    starts = np.flatnonzero(np.r_[True, pi[1:] != pi[:-1]])
+    ends = np.r_[starts[1:], len(pi)]
+    for s, e in zip(starts.tolist(), ends.tolist()):
+        i = int(pi[s])
+        js = pj[s:e]
+        ok = creates[js]
+        if not ok.any():
+            continue
+        k = int(np.flatnonzero(ok)[0])  # nearest (then earliest) partner that created an identity
+        existing[i] = -1
+        best_d[i] = d[s + k]
+        batch[i] = js[k]
+        creates[i] = False
+    return batch

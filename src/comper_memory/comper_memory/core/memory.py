@@ -20,7 +20,11 @@ from comper_msgs_py.arrays import TransitionError, Transitions
 
 from . import storage as st
 from .config import MemoryConfig
-from .index import ExactIndex
+from .index import ExactIndex, GridIndex
+
+# Keys up to this many values use the sorted-cell grid engine, longer keys faiss IVF (see
+# docs/memory.md for the measurements behind the choice). Speed only, never results.
+GRID_MAX_KEY_DIM = 1 << 30
 from .keys import transition_keys
 
 __all__ = ["CompactMemory", "MemoryInputError", "LeaseError", "StoreResult", "SampleResult",
@@ -86,13 +90,13 @@ class _DenseSet:
     """Members (slots) in a dense array for O(1)-per-item uniform sampling; pos[slot] = index or -1."""
 
     def __init__(self) -> None:
-        self.items = np.zeros(16, dtype=np.int64)
+        self.items = np.zeros(16, dtype=np.int32)
         self.n = 0
-        self.pos = np.zeros(0, dtype=np.int64)
+        self.pos = np.zeros(0, dtype=np.int32)
 
     def resize(self, cap: int) -> None:
         old = self.pos
-        self.pos = np.full(cap, -1, dtype=np.int64)
+        self.pos = np.full(cap, -1, dtype=np.int32)
         self.pos[:len(old)] = old
 
     def members(self) -> np.ndarray:
@@ -107,7 +111,7 @@ class _DenseSet:
         if not k:
             return
         if self.n + k > len(self.items):
-            grown = np.zeros(max(2 * len(self.items), self.n + k), dtype=np.int64)
+            grown = np.zeros(max(len(self.items) + len(self.items) // 4, self.n + k), dtype=np.int32)
             grown[:self.n] = self.items[:self.n]
             self.items = grown
         self.items[self.n:self.n + k] = slots
@@ -135,7 +139,7 @@ class _DenseSet:
     def set_order(self, slots: np.ndarray) -> None:
         self.pos[self.items[:self.n]] = -1
         self.n = 0
-        self.add(np.asarray(slots, dtype=np.int64))
+        self.add(np.asarray(slots, dtype=np.int32))
 
 
 _SLOT_FIELDS = ("id", "rewards", "terminated", "truncated", "episode_id", "hist", "hist_total",
@@ -150,6 +154,7 @@ class CompactMemory:
                  clock: Callable[[], float] = time.monotonic):
         self.config = (config or MemoryConfig()).validate()
         self.expected_key_size = key_size
+        self.index_engine: str | None = None  # None: by key size; 'grid' | 'ivf' (tests, benchmarks)
         self._clock = clock
         self._lock = threading.RLock()
         self._wal: st.WriteAheadLog | None = None
@@ -166,8 +171,10 @@ class CompactMemory:
         self.a: dict[str, np.ndarray] = {}
         self.free: list[int] = []
         self.hi = 0                        # slots ever used (slots >= hi are fresh)
-        self.ids_sorted = np.zeros(0, dtype=np.int64)   # live ids, increasing
-        self.slots_sorted = np.zeros(0, dtype=np.int64)
+        # live ids (increasing) and their slots: growable buffers (1.25x), views below
+        self._ids_buf = np.zeros(0, dtype=np.int64)
+        self._slots_buf = np.zeros(0, dtype=np.int32)
+        self._n_sorted = 0
         self.n_live = 0
         self.tm = _DenseSet()
         self.rtm = _DenseSet()
@@ -190,20 +197,33 @@ class CompactMemory:
                        "action_shape": () if discrete else (int(t.actions.shape[1]),),
                        "action_dtype": "<i8" if discrete else "<f4", "key_size": key}
         c = self.config
-        self.index = ExactIndex(key, c.delta, projection_dim=c.index_projection_dim,
-                                min_train=c.index_min_train, list_size=c.index_list_size,
-                                max_lists=c.index_max_lists, rebuild_growth=c.index_rebuild_growth,
-                                seed=c.index_seed)
+        engine = self.index_engine or ("grid" if key <= GRID_MAX_KEY_DIM else "ivf")
+        if engine == "grid":
+            self.index = GridIndex(key, c.delta, keys_of=self._index_keys, alive=self._index_alive,
+                                   live_ids=lambda: self.ids_sorted,
+                                   grid_dims=min(3, c.index_projection_dim), min_train=c.index_min_train,
+                                   rebuild_growth=c.index_rebuild_growth, seed=c.index_seed)
+        else:
+            self.index = ExactIndex(key, c.delta, projection_dim=c.index_projection_dim,
+                                    min_train=c.index_min_train, list_size=c.index_list_size,
+                                    max_lists=c.index_max_lists, rebuild_growth=c.index_rebuild_growth,
+                                    seed=c.index_seed)
+
+    def _index_keys(self, ids: np.ndarray) -> np.ndarray:
+        return self._keys_of_slots(self._slots_of(ids))
+
+    def _index_alive(self, ids: np.ndarray) -> np.ndarray:
+        return self._slots_of(ids) >= 0
 
     def _field_spec(self) -> dict[str, tuple[tuple, np.dtype, object]]:
         s = self.schema
         return {
             "id": ((), np.int64, -1), "rewards": ((), np.float32, 0), "terminated": ((), bool, False),
             "truncated": ((), bool, False), "episode_id": ((), np.uint64, 0),
-            "hist": ((self.H,), np.float32, 0), "hist_total": ((), np.int64, 0),
+            "hist": ((self.H,), np.float32, 0),
             "count": ((), np.int64, 0), "first_step": ((), np.uint64, 0), "last_step": ((), np.uint64, 0),
             "last_seq": ((), np.int64, 0), "tm_key": ((), np.int64, 0), "rtm_pred": ((), np.float32, 0),
-            "lease": ((), np.int64, -1),
+            "lease": ((), np.int32, -1),
             "states": (s["obs_shape"], np.dtype(s["obs_dtype"]), 0),
             "next_states": (s["obs_shape"], np.dtype(s["obs_dtype"]), 0),
             "actions": (tuple(s["action_shape"]), np.dtype(s["action_dtype"]), 0),
@@ -212,7 +232,7 @@ class CompactMemory:
     def _grow(self, need: int) -> None:
         if need <= self.cap:
             return
-        new = max(need, 2 * self.cap, 1024)
+        new = max(need, self.cap + self.cap // 4, 1024)  # 1.25x: little slack
         for name, (shape, dtype, fill) in self._field_spec().items():
             arr = np.full((new,) + shape, fill, dtype=dtype)
             if name in self.a:
@@ -222,9 +242,36 @@ class CompactMemory:
         self.rtm.resize(new)
         self.cap = new
 
+    @property
+    def ids_sorted(self) -> np.ndarray:
+        """Live identity ids, increasing (a view)."""
+        return self._ids_buf[:self._n_sorted]
+
+    @property
+    def slots_sorted(self) -> np.ndarray:
+        """Slots of :attr:`ids_sorted` (a view)."""
+        return self._slots_buf[:self._n_sorted]
+
+    def _set_sorted(self, ids: np.ndarray, slots: np.ndarray) -> None:
+        self._ids_buf = np.ascontiguousarray(ids, dtype=np.int64)
+        self._slots_buf = np.ascontiguousarray(slots, dtype=np.int32)
+        self._n_sorted = len(ids)
+
+    def _append_sorted(self, ids: np.ndarray, slots: np.ndarray) -> None:
+        n, k = self._n_sorted, len(ids)
+        if n + k > len(self._ids_buf):
+            cap = max(n + k, n + n // 4, 1024)
+            ib = np.zeros(cap, np.int64)
+            sb = np.zeros(cap, np.int32)
+            ib[:n], sb[:n] = self._ids_buf[:n], self._slots_buf[:n]
+            self._ids_buf, self._slots_buf = ib, sb
+        self._ids_buf[n:n + k] = ids
+        self._slots_buf[n:n + k] = slots
+        self._n_sorted = n + k
+
     def _alloc(self, k: int) -> np.ndarray:
         take = min(k, len(self.free))
-        out = np.empty(k, dtype=np.int64)
+        out = np.empty(k, dtype=np.int32)
         if take:
             out[:take] = self.free[len(self.free) - take:]
             del self.free[len(self.free) - take:]
@@ -252,7 +299,7 @@ class CompactMemory:
 
     def _newest_labels(self, slots: np.ndarray) -> np.ndarray:
         a = self.a
-        return a["hist"][slots, (a["hist_total"][slots] - 1) % self.H]
+        return a["hist"][slots, (a["count"][slots] - 1) % self.H]
 
     def _reps(self, slots: np.ndarray, labels: np.ndarray) -> Transitions:
         a = self.a
@@ -357,12 +404,10 @@ class CompactMemory:
                                  ("terminated", "terminated"), ("truncated", "truncated"),
                                  ("episode_ids", "episode_id"), ("steps", "first_step")):
                 a[f_dst][new_slots] = getattr(t, f_src)[cidx]
-            a["hist_total"][new_slots] = 0
             a["count"][new_slots] = 0
             a["lease"][new_slots] = -1
             a["rtm_pred"][new_slots] = 0
-            self.ids_sorted = np.concatenate([self.ids_sorted, new_ids])
-            self.slots_sorted = np.concatenate([self.slots_sorted, new_slots])
+            self._append_sorted(new_ids, new_slots)
             self.n_live += n_new
         # per-set updates, grouped by slot, in transition order
         seq = self.transitions_stored + np.arange(n, dtype=np.int64)
@@ -376,9 +421,8 @@ class CompactMemory:
         rank = np.arange(n) - np.repeat(gstart, gsize)
         gs_rep = np.repeat(gsize, gsize)
         keep = rank >= gs_rep - self.H
-        tot = a["hist_total"][ss] + rank
+        tot = a["count"][ss] + rank
         a["hist"][ss[keep], tot[keep] % self.H] = t.value_labels[order][keep]
-        a["hist_total"][useg] += gsize
         a["count"][useg] += gsize
         last = gstart + gsize - 1
         a["last_seq"][useg] = seq[order][last]
@@ -425,8 +469,7 @@ class CompactMemory:
         self.tm.remove(slots)
         self.rtm.remove(slots)
         keep = ~np.isin(self.ids_sorted, ids)
-        self.ids_sorted = self.ids_sorted[keep]
-        self.slots_sorted = self.slots_sorted[keep]
+        self._set_sorted(self.ids_sorted[keep], self.slots_sorted[keep])
         a["id"][slots] = -1
         a["lease"][slots] = -1
         self.free.extend(slots.tolist())
@@ -480,8 +523,8 @@ class CompactMemory:
             if k:
                 self.tm.remove(slots)
                 self.a["lease"][slots] = rid
-                lens = np.minimum(self.a["hist_total"][slots], self.H)
-                tot = self.a["hist_total"][slots]
+                lens = np.minimum(self.a["count"][slots], self.H)
+                tot = self.a["count"][slots]
                 ridx = np.repeat(np.arange(k), lens)
                 off = np.arange(int(lens.sum())) - np.repeat(np.cumsum(lens) - lens, lens)
                 pos = (np.repeat(tot - lens, lens) + off) % self.H
@@ -607,7 +650,7 @@ class CompactMemory:
         with self._lock:
             b = sum(arr.nbytes for arr in self.a.values())
             b += self.tm.items.nbytes + self.tm.pos.nbytes + self.rtm.items.nbytes + self.rtm.pos.nbytes
-            b += self.ids_sorted.nbytes + self.slots_sorted.nbytes + 8 * len(self.free)
+            b += self._ids_buf.nbytes + self._slots_buf.nbytes + 8 * len(self.free)
             if self.index is not None:
                 b += self.index.bytes_used()
             return int(b)
@@ -632,8 +675,9 @@ class CompactMemory:
         slots = self.slots_sorted
         arrays = {}
         if self.schema is not None:
-            for name in _SLOT_FIELDS:
-                arrays[name] = self.a[name][slots]
+            for name in _SLOT_FIELDS:  # snapshot format unchanged: hist_total == count, int64 lease
+                src = "count" if name == "hist_total" else name
+                arrays[name] = self.a[src][slots]
             # leased sets that are not in TM go back to its front (leases are not persisted)
             leased = slots[(self.a["lease"][slots] >= 0) & ~self.tm.contains(slots)]
             tm_order = self.tm.members()
@@ -682,12 +726,15 @@ class CompactMemory:
         n = len(ids)
         slots = self._alloc(n)
         for name in _SLOT_FIELDS:
-            self.a[name][slots] = arrays[name]
-        self.ids_sorted = ids.astype(np.int64)
-        self.slots_sorted = slots
+            if name != "hist_total":  # equals count (kept in the snapshot for its format)
+                self.a[name][slots] = arrays[name]
+        self._set_sorted(ids.astype(np.int64), slots)
         self.n_live = n
         self.tm.add(self._slots_of(arrays["tm_order"]))
         self.rtm.add(self._slots_of(arrays["rtm_order"]))
+        if isinstance(self.index, GridIndex):
+            self.index.rebuild(refit=True)
+            return
         step = max(1, (1 << 24) // max(1, sch["key_size"]))
         for s in range(0, n, step):
             sl = slots[s:s + step]
