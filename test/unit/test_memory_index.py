@@ -237,3 +237,15 @@ def test_grid_snapshot_restore_rebuilds_index(tmp_path):
     q = perturbed(rng, base.take(np.arange(0, 200, 3)), 0.02)
     np.testing.assert_array_equal(mem.store(q).identity_ids, other.store(q).identity_ids)
     assert other.index.ntotal == other.stats()["identities"]
+
+
+@pytest.mark.parametrize("engine, cls_name", [("grid", "GridIndex"), ("faiss_ivf", "ExactIndex")])
+def test_index_engine_parameter_selects_the_engine_and_decisions_agree(engine, cls_name):
+    rng = np.random.default_rng(7)
+    t = make(rng, 300)
+    t = Transitions.concatenate([t, t.take(np.arange(100))])  # 100 exact re-stores
+    mem = CompactMemory(MemoryConfig(delta=1e-4, index_engine=engine))
+    res = mem.store(t)
+    assert type(mem.index).__name__ == cls_name
+    assert res.new_identities == 300
+    np.testing.assert_array_equal(res.identity_ids[300:], res.identity_ids[:100])

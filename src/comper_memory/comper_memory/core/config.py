@@ -50,6 +50,14 @@ class MemoryConfig:
     lease_timeout_s: float = param(
         60.0, "seconds a two-phase reduction lease stays valid; expired leases put their sets back "
         "at the front of TM", minimum=0.0)
+    index_engine: str = param(
+        "grid", "exact candidate generator of the similarity index: 'grid' (sorted cell codes over a "
+        "3-d PCA projection, numpy) or 'faiss_ivf' (faiss IVF over an orthonormal projection with the "
+        "triangle-inequality probe bound); both re-check every candidate in float64, so decisions are "
+        "identical and only speed differs (docs/memory.md has the measured comparison)",
+        thesis="faiss IndexFlatL2 brute force (Appendix A.1)",
+        deviation="grid is the default because it measured faster at every key size; faiss_ivf keeps "
+        "faiss as the search engine", choices=("grid", "faiss_ivf"))
     index_projection_dim: int = param(
         8, "dimensions of the orthonormal projection the exact index partitions on "
         "(|P(x - y)| <= |x - y|, so no similar pair is missed; larger = fewer exact re-checks, "

@@ -24,7 +24,6 @@ from .index import ExactIndex, GridIndex
 
 # Keys up to this many values use the sorted-cell grid engine, longer keys faiss IVF (see
 # docs/memory.md for the measurements behind the choice). Speed only, never results.
-GRID_MAX_KEY_DIM = 1 << 30
 from .keys import transition_keys
 
 __all__ = ["CompactMemory", "MemoryInputError", "LeaseError", "StoreResult", "SampleResult",
@@ -154,7 +153,8 @@ class CompactMemory:
                  clock: Callable[[], float] = time.monotonic):
         self.config = (config or MemoryConfig()).validate()
         self.expected_key_size = key_size
-        self.index_engine: str | None = None  # None: by key size; 'grid' | 'ivf' (tests, benchmarks)
+        # config.index_engine chooses; tests and benchmarks may force 'grid' | 'ivf' here
+        self.index_engine: str | None = None
         self._clock = clock
         self._lock = threading.RLock()
         self._wal: st.WriteAheadLog | None = None
@@ -197,7 +197,7 @@ class CompactMemory:
                        "action_shape": () if discrete else (int(t.actions.shape[1]),),
                        "action_dtype": "<i8" if discrete else "<f4", "key_size": key}
         c = self.config
-        engine = self.index_engine or ("grid" if key <= GRID_MAX_KEY_DIM else "ivf")
+        engine = self.index_engine or {"grid": "grid", "faiss_ivf": "ivf"}[c.index_engine]
         if engine == "grid":
             self.index = GridIndex(key, c.delta, keys_of=self._index_keys, alive=self._index_alive,
                                    live_ids=lambda: self.ids_sorted,
