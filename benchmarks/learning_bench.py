@@ -1,0 +1,237 @@
+#!/usr/bin/env python3
+"""COMCACT vs DDPG learning benchmark through the ROS node suite.
+
+Each run is `ros2 run comper_agent comcact_node` (embedded bring-up: sim, memory and QT trainer
+nodes in the learner's process, talking over ROS) in its own subprocess with its own
+ROS_DOMAIN_ID; at most --parallel runs at a time. Results come from each run's metrics.jsonl
+(evaluations: eval_episodes deterministic episodes every eval_every steps; the time split logged
+at the end of the run).
+
+    python benchmarks/learning_bench.py                                   # the full protocol (long!)
+    python benchmarks/learning_bench.py --tasks InvertedPendulum-v4 --seeds 1 --total-steps 20000
+    python benchmarks/learning_bench.py --tasks Hopper-v4 --total-steps 5000 --eval-every 5000 --tag speed
+
+Writes <out>/<tag>/{results.md, results.json, curves_<task>.png, runs/<run_id>/..., logs/<run_id>.log}.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_TASKS = ["Hopper-v4", "Walker2d-v4", "HalfCheetah-v4", "InvertedPendulum-v4", "InvertedDoublePendulum-v4"]
+
+
+def parse_args(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--tasks", nargs="+", default=DEFAULT_TASKS, help="gymnasium task ids")
+    ap.add_argument("--algorithms", nargs="+", default=["comcact", "ddpg"], choices=["comcact", "ddpg"])
+    ap.add_argument("--seeds", type=int, default=3, help="seeds per (task, algorithm): 0..N-1")
+    ap.add_argument("--total-steps", type=int, default=50_000, help="steps per run (thesis: 50,000)")
+    ap.add_argument("--eval-every", type=int, default=5_000, help="steps between evaluations (thesis: 5,000)")
+    ap.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (thesis: 10)")
+    ap.add_argument("--report-steps", type=int, nargs="+", default=[10_000, 25_000, 50_000],
+                    help="steps at which the table reports the evaluation return (nearest evaluation at or before)")
+    ap.add_argument("--parallel", type=int, default=2, help="runs at a time (the machine has 2 cores)")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "learning"), help="output folder")
+    ap.add_argument("--tag", default=time.strftime("%Y%m%d-%H%M%S"), help="sub-folder of --out for this sweep")
+    ap.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
+                    help="extra parameters for every run, e.g. --ros-args -p reduce_every:=1 (must come last)")
+    ap.add_argument("--timeout-s", type=float, default=6 * 3600, help="kill a run after this many seconds")
+    ap.add_argument("--report-only", action="store_true", help="only rebuild the tables/plots from <out>/<tag>")
+    return ap.parse_args(argv)
+
+
+def run_id(alg, task, seed):
+    return f"{alg}-{task.replace('/', '_')}-s{seed}"
+
+
+def launch(args, base: Path, alg, task, seed, domain):
+    rid = run_id(alg, task, seed)
+    cmd = [shutil.which("ros2") or "ros2", "run", "comper_agent", "comcact_node", "--ros-args",
+           "-p", f"algorithm:={alg}", "-p", f"env_id:={task}", "-p", f"seed:={seed}",
+           "-p", f"total_steps:={args.total_steps}", "-p", f"eval_every:={args.eval_every}",
+           "-p", f"eval_episodes:={args.eval_episodes}", "-p", f"runs_root:={base / 'runs'}",
+           "-p", f"run_id:={rid}", "-p", "progress_period_s:=30.0"]
+    extra = list(args.ros_args)
+    if extra and extra[0] == "--ros-args":
+        extra = extra[1:]
+    cmd += extra
+    env = os.environ.copy()
+    env["ROS_DOMAIN_ID"] = str(domain)
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault("OMP_NUM_THREADS", "1")
+    (base / "logs").mkdir(parents=True, exist_ok=True)
+    log = open(base / "logs" / f"{rid}.log", "wb")
+    shutil.rmtree(base / "runs" / rid, ignore_errors=True)
+    p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    return {"rid": rid, "proc": p, "log": log, "t0": time.monotonic(), "alg": alg, "task": task, "seed": seed}
+
+
+def read_jsonl(path: Path, kind: str):
+    out = []
+    if not path.exists():
+        return out
+    for line in path.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if rec.get("kind") == kind:
+            out.append(rec)
+    return out
+
+
+def run_all(args, base: Path) -> None:
+    jobs = [(a, t, s) for t in args.tasks for a in args.algorithms for s in range(args.seeds)]
+    print(f"[bench] {len(jobs)} runs ({len(args.tasks)} tasks x {len(args.algorithms)} algorithms x "
+          f"{args.seeds} seeds), {args.total_steps} steps each, {args.parallel} at a time; outputs in {base}",
+          flush=True)
+    running, done = [], 0
+    domains = random.SystemRandom().sample(range(101, 232), k=max(1, args.parallel) * 2)
+    t_start = time.monotonic()
+    last_status = 0.0
+    while jobs or running:
+        while jobs and len(running) < args.parallel:
+            a, t, s = jobs.pop(0)
+            used = {r["domain"] for r in running}
+            dom = next(d for d in domains if d not in used)
+            r = launch(args, base, a, t, s, dom)
+            r["domain"] = dom
+            running.append(r)
+            print(f"[bench] start {r['rid']} (ROS_DOMAIN_ID {dom})", flush=True)
+        time.sleep(2.0)
+        for r in list(running):
+            rc = r["proc"].poll()
+            if rc is None and time.monotonic() - r["t0"] > args.timeout_s:
+                os.killpg(r["proc"].pid, 2)
+                try:
+                    rc = r["proc"].wait(60)
+                except subprocess.TimeoutExpired:
+                    os.killpg(r["proc"].pid, 9)
+                    rc = r["proc"].wait()
+            if rc is not None:
+                r["log"].close()
+                running.remove(r)
+                done += 1
+                evals = read_jsonl(base / "runs" / r["rid"] / "metrics.jsonl", "eval")
+                last = f"eval {evals[-1]['mean_return']:.1f} at {evals[-1]['step']}" if evals else "no eval"
+                print(f"[bench] done {r['rid']} rc {rc} in {time.monotonic() - r['t0']:.0f} s: {last} "
+                      f"({done} finished, {len(jobs)} waiting)", flush=True)
+        if time.monotonic() - last_status > 60 and running:
+            last_status = time.monotonic()
+            for r in running:
+                prog = read_jsonl(base / "runs" / r["rid"] / "metrics.jsonl", "progress")
+                if prog:
+                    print(f"[bench]   {r['rid']}: step {prog[-1]['step']}, {prog[-1]['steps_per_s']:.0f} steps/s",
+                          flush=True)
+    print(f"[bench] all runs finished in {time.monotonic() - t_start:.0f} s", flush=True)
+
+
+def at_step(evals, step):
+    cands = [e for e in evals if e["step"] <= step]
+    return cands[-1] if cands else None
+
+
+def report(args, base: Path) -> dict:
+    import numpy as np
+    results = {"total_steps": args.total_steps, "eval_every": args.eval_every, "eval_episodes": args.eval_episodes,
+               "report_steps": args.report_steps, "runs": {}, "table": {}}
+    for t in args.tasks:
+        for a in args.algorithms:
+            for s in range(args.seeds):
+                rid = run_id(a, t, s)
+                m = base / "runs" / rid / "metrics.jsonl"
+                evals = read_jsonl(m, "eval")
+                timers = read_jsonl(m, "timers")
+                results["runs"][rid] = {"task": t, "algorithm": a, "seed": s,
+                                        "evals": [(e["step"], e["mean_return"], e["std_return"]) for e in evals],
+                                        "timers": timers[-1] if timers else None}
+    steps = [x for x in args.report_steps if x <= args.total_steps] or [args.total_steps]
+    lines = [f"| task | algorithm | seeds | " + " | ".join(f"return @ {x:,}" for x in steps) + " | steps/s |",
+             "|---|---|---|" + "---|" * len(steps) + "---|"]
+    for t in args.tasks:
+        for a in args.algorithms:
+            runs = [r for r in results["runs"].values() if r["task"] == t and r["algorithm"] == a and r["evals"]]
+            cells = []
+            row = {}
+            for x in steps:
+                vals = []
+                for r in runs:
+                    e = at_step([{"step": st, "mean_return": mr} for st, mr, _ in r["evals"]], x)
+                    if e is not None and e["step"] >= x - args.eval_every + 1:
+                        vals.append(e["mean_return"])
+                if vals:
+                    cells.append(f"{np.mean(vals):.1f} +- {np.std(vals):.1f} (n={len(vals)})")
+                    row[str(x)] = {"mean": float(np.mean(vals)), "std": float(np.std(vals)), "n": len(vals)}
+                else:
+                    cells.append("-")
+            rates = [r["timers"]["steps_per_s"] for r in runs if r["timers"]]
+            rate = f"{np.mean(rates):.1f}" if rates else "-"
+            row["steps_per_s"] = float(np.mean(rates)) if rates else None
+            results["table"][f"{t}/{a}"] = row
+            lines.append(f"| {t} | {a} | {len(runs)} | " + " | ".join(cells) + f" | {rate} |")
+    md = ["# Learning benchmark", "",
+          f"{args.total_steps:,} steps per run, evaluation every {args.eval_every:,} steps "
+          f"({args.eval_episodes} deterministic episodes), mean +- std over seeds of the per-run mean "
+          "evaluation return; steps/s = the whole run including evaluations.", "", *lines, "",
+          "Time split per run (seconds; phases measured in comcact_node):", ""]
+    for rid, r in results["runs"].items():
+        if r["timers"]:
+            ph = r["timers"]["phases"]
+            md.append(f"- {rid}: {r['timers']['elapsed_s']:.0f} s, {r['timers']['steps_per_s']:.1f} steps/s; "
+                      + ", ".join(f"{k} {v['seconds']:.1f}" for k, v in sorted(ph.items(), key=lambda kv: -kv[1]['seconds']))
+                      + f"; ROS round trip {r['timers']['ros_round_trip_ms']:.2f} ms x {r['timers']['service_calls']} calls")
+    (base / "results.md").write_text("\n".join(md) + "\n")
+    (base / "results.json").write_text(json.dumps(results, indent=1))
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        for t in args.tasks:
+            fig, ax = plt.subplots(figsize=(6, 4))
+            for a in args.algorithms:
+                runs = [r for r in results["runs"].values() if r["task"] == t and r["algorithm"] == a and r["evals"]]
+                if not runs:
+                    continue
+                n = min(len(r["evals"]) for r in runs)
+                st = np.array([e[0] for e in runs[0]["evals"][:n]])
+                vals = np.array([[e[1] for e in r["evals"][:n]] for r in runs])
+                ax.plot(st, vals.mean(0), label=f"{a} (n={len(runs)})")
+                ax.fill_between(st, vals.mean(0) - vals.std(0), vals.mean(0) + vals.std(0), alpha=0.2)
+            ax.set_title(t)
+            ax.set_xlabel("environment steps")
+            ax.set_ylabel("evaluation return")
+            ax.legend()
+            fig.tight_layout()
+            fig.savefig(base / f"curves_{t.replace('/', '_')}.png", dpi=100)
+            plt.close(fig)
+    except Exception as exc:
+        print(f"[bench] plots skipped: {exc}", flush=True)
+    print("\n".join(lines), flush=True)
+    print(f"[bench] wrote {base / 'results.md'}, {base / 'results.json'} and curves_*.png", flush=True)
+    return results
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    base = Path(args.out) / args.tag
+    base.mkdir(parents=True, exist_ok=True)
+    if not args.report_only:
+        try:
+            run_all(args, base)
+        except KeyboardInterrupt:
+            print("[bench] interrupted: reporting what finished", flush=True)
+    report(args, base)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

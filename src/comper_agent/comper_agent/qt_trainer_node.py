@@ -1,0 +1,278 @@
+"""qt_trainer_node: trains the Q-target network QT and drives the memory's two-phase reduction.
+
+    ros2 run comper_agent qt_trainer_node --ros-args -p memory_node:=memory_node
+    ros2 run comper_agent qt_trainer_node --ros-args --params-file src/comper_agent/config/qt_trainer.yaml
+
+Service ``~/reduce`` (comper_msgs/srv/Reduce): pop up to ``reduce_batch`` sets from TM
+(``<memory_node>/reduce_begin``), train QT on them (``qt_epochs`` passes), predict one value per
+set, upsert RTM (``<memory_node>/reduce_commit``), publish the new model, answer. The nested calls
+run in a reentrant callback group on a multi-threaded executor (docs/architecture.md).
+
+Topic ``~/qt_model`` (comper_msgs/msg/QTModel; reliable, transient local, depth 1): the weights
+as named Arrays, the scalers and the version, published whenever the model changes, so a learner
+that starts late still gets the current model. :func:`qt_to_msg` / :func:`msg_to_qt` convert.
+
+Optional: ``period_s`` > 0 also reduces on a timer (0 = only on request).
+Keys: ``comper_memory.core.transition_keys`` (the memory's own key builder).
+"""
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from comper_msgs.msg import QTModel as QTModelMsg
+from comper_msgs.srv import Reduce, ReduceBegin, ReduceCommit
+from comper_msgs_py.convert import (array_to_numpy, batch_to_transitions, numpy_to_array,
+                                    numpy_to_seq, seq_to_numpy)
+from comper_msgs_py.ros_params import declare_config
+
+from .bringup import ServiceError, call
+from .core.config import ComcactQTConfig, QTConfig
+
+__all__ = ["QtTrainerNode", "QT_MODEL_QOS", "qt_to_msg", "msg_to_qt", "main"]
+
+QT_MODEL_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                          reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+# ------------------------------------------------------------------------------- conversion
+def qt_to_msg(arrays: dict, out: QTModelMsg | None = None) -> QTModelMsg:
+    """``QTModel.to_arrays()`` -> comper_msgs/QTModel (tensors as named float32 Arrays)."""
+    msg = out if out is not None else QTModelMsg()
+    msg.version = int(arrays["version"])
+    msg.architecture = str(arrays["architecture"])
+    msg.config_json = json.dumps(arrays["config"], sort_keys=True)
+    msg.key_size = int(arrays["key_size"])
+    msg.sequence_length = int(arrays["sequence_length"])
+    names = list(arrays["tensors"].keys())
+    msg.tensor_names = names
+    msg.tensors = [numpy_to_array(np.asarray(arrays["tensors"][n], np.float32)) for n in names]
+    msg.input_mean = numpy_to_seq(arrays["input_mean"], np.float32)
+    msg.input_std = numpy_to_seq(arrays["input_std"], np.float32)
+    msg.label_mean = float(arrays["label_mean"])
+    msg.label_std = float(arrays["label_std"])
+    loss = float(arrays["train_loss"])
+    msg.train_loss = loss if np.isfinite(loss) else float("nan")
+    msg.train_sets = int(arrays["train_sets"])
+    return msg
+
+
+def msg_to_qt(msg: QTModelMsg, device: str | None = "cpu"):
+    """comper_msgs/QTModel -> a predicting :class:`comper_agent.core.qt.QTModel`."""
+    from .core.qt import QTModel
+    tensors = {n: np.array(array_to_numpy(a), dtype=np.float32) for n, a in zip(msg.tensor_names, msg.tensors)}
+    return QTModel.from_arrays(
+        architecture=msg.architecture, config=json.loads(msg.config_json), key_size=int(msg.key_size),
+        sequence_length=int(msg.sequence_length), tensors=tensors,
+        input_mean=seq_to_numpy(msg.input_mean, np.float32).copy(),
+        input_std=seq_to_numpy(msg.input_std, np.float32).copy(),
+        label_mean=float(msg.label_mean), label_std=float(msg.label_std), version=int(msg.version),
+        train_loss=float(msg.train_loss), train_sets=int(msg.train_sets), device=device)
+
+
+@dataclass
+class _Lease:
+    reduction_id: int
+    identity_ids: np.ndarray
+    representatives: object
+    label_history: np.ndarray
+    history_lengths: np.ndarray
+    counts: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.identity_ids.shape[0])
+
+
+def _desc(text: str) -> ParameterDescriptor:
+    return ParameterDescriptor(description=text, read_only=True)
+
+
+# ------------------------------------------------------------------------------- node
+class QtTrainerNode(Node):
+    """QT trainer. ``node_kwargs`` go to rclpy's Node (context, parameter_overrides, ...), so a
+    learner can embed it in its own process."""
+
+    def __init__(self, node_name: str = "qt_trainer_node", **node_kwargs):
+        super().__init__(node_name, **node_kwargs)
+        arch = self.declare_parameter(
+            "architecture", "comcact",
+            _desc("QT layout and defaults: comcact = Appendix B (LSTM 64-64, dense 32), comper = "
+                  "Table 37 (LSTM 64-32-32, dense 18). One of: comcact, comper.")).value
+        if arch not in ("comcact", "comper"):
+            raise ValueError(f"architecture must be comcact or comper, got {arch!r}")
+        cls = ComcactQTConfig if arch == "comcact" else QTConfig
+        self.qt_config = declare_config(self, cls, overrides={"qt_architecture": arch})
+        if self.qt_config.qt_architecture != arch:
+            raise ValueError(f"qt_architecture:={self.qt_config.qt_architecture} contradicts "
+                             f"architecture:={arch}; set architecture only")
+        p = self.declare_parameter
+        self.memory_name = p("memory_node", "memory_node",
+                             _desc("name (or /namespace/name) of the memory node whose reduce_begin / "
+                                   "reduce_commit services are called")).value.strip("/")
+        self.reduce_batch = int(p("reduce_batch", 0, _desc(
+            "sets popped from TM per reduction; 0 = the memory node's reduce_batch. "
+            "Thesis: 50,000 for COMCACT (appendix B), 1,000 for COMPER (Table 34)")).value)
+        self.period_s = float(p("period_s", 0.0, _desc(
+            "if > 0, also reduce on a timer every period_s seconds (0 = only on ~/reduce requests)")).value)
+        self.call_timeout_s = float(p("call_timeout_s", 60.0, _desc(
+            "seconds to wait for each memory service answer")).value)
+        self.num_threads = int(p("num_threads", 0, _desc(
+            "torch intra-op threads set at start when > 0 (standalone: default 1 when 0)")).value)
+        if self.reduce_batch < 0:
+            raise ValueError("reduce_batch must be >= 0")
+
+        from comper_memory.core import transition_keys
+
+        from .core.qt import QTModel
+        self.key_fn = transition_keys
+        self.qt = QTModel(self.qt_config)
+        self._lock = threading.Lock()      # one reduction at a time
+        self.reductions = 0
+        self.last_duration_s = 0.0
+
+        self._group = ReentrantCallbackGroup()
+        self._begin = self.create_client(ReduceBegin, f"/{self.memory_name}/reduce_begin",
+                                         callback_group=self._group)
+        self._commit = self.create_client(ReduceCommit, f"/{self.memory_name}/reduce_commit",
+                                          callback_group=self._group)
+        self._pub = self.create_publisher(QTModelMsg, "~/qt_model", QT_MODEL_QOS)
+        self.create_service(Reduce, "~/reduce", self._on_reduce, callback_group=self._group)
+        if self.period_s > 0:
+            self.create_timer(self.period_s, self._on_timer, callback_group=MutuallyExclusiveCallbackGroup())
+        c = self.qt_config
+        self.get_logger().info(
+            f"QT trainer ready: architecture {arch} (LSTM {list(c.qt_lstm_units)}, dense {c.qt_dense_units}, "
+            f"{c.qt_output_activation} output), RMSProp lr {c.qt_lr:g}, batch {c.qt_batch_size}, "
+            f"epochs {c.qt_epochs}; memory /{self.memory_name}; reduce_batch "
+            f"{self.reduce_batch or 'memory default'}; timer {'off' if self.period_s <= 0 else f'{self.period_s:g} s'}")
+
+    # --------------------------------------------------------------------------- state
+    def state_dict(self) -> dict:
+        return {"qt": self.qt.state_dict(), "reductions": self.reductions}
+
+    def load_state_dict(self, state: dict) -> None:
+        with self._lock:
+            self.qt.load_state_dict(state["qt"])
+            self.reductions = int(state.get("reductions", 0))
+        if self.qt.net is not None:
+            self.publish_model()
+
+    def publish_model(self) -> None:
+        if self.qt.net is None:
+            return
+        msg = qt_to_msg(self.qt.to_arrays())
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._pub.publish(msg)
+
+    # --------------------------------------------------------------------------- reduction
+    def reduce(self, max_sets: int = 0, epochs: int = 0) -> dict:
+        """One whole reduction; returns the Reduce response fields. Raises ServiceError."""
+        from .core.qt import reduction_predictor
+        with self._lock:
+            t0 = time.monotonic()
+            if not self._begin.service_is_ready() and not self._begin.wait_for_service(timeout_sec=5.0):
+                raise ServiceError(f"/{self.memory_name}/reduce_begin is not available")
+            req = ReduceBegin.Request(max_sets=int(max_sets or self.reduce_batch))
+            begin = call(self._begin, req, self.call_timeout_s, what=f"/{self.memory_name}/reduce_begin")
+            s = begin.sets
+            ids = seq_to_numpy(s.identity_ids, np.uint64)
+            m = int(ids.shape[0])
+            loss = float("nan")
+            if m == 0:
+                # nothing in TM: commit the empty lease so the memory can forget it
+                commit = call(self._commit, ReduceCommit.Request(reduction_id=s.reduction_id),
+                              self.call_timeout_s, what=f"/{self.memory_name}/reduce_commit", check=False)
+                return {"sets_reduced": 0, "rtm_size": int(commit.rtm_size), "qt_version": self.qt.version,
+                        "qt_loss": loss, "duration_s": time.monotonic() - t0,
+                        "message": "TM is empty: nothing to reduce"}
+            lease = _Lease(int(s.reduction_id), ids, batch_to_transitions(s.representatives),
+                           seq_to_numpy(s.label_history, np.float32),
+                           seq_to_numpy(s.history_lengths, np.uint32).astype(np.int64),
+                           seq_to_numpy(s.counts, np.uint32))
+            predict = reduction_predictor(self.qt, epochs=int(epochs) or None, key_fn=self.key_fn)
+            preds = np.asarray(predict(lease), np.float32)
+            loss = float(self.qt.train_loss)
+            creq = ReduceCommit.Request(reduction_id=lease.reduction_id)
+            creq.identity_ids = numpy_to_seq(ids, np.uint64)
+            creq.predictions = numpy_to_seq(preds, np.float32)
+            commit = call(self._commit, creq, self.call_timeout_s, what=f"/{self.memory_name}/reduce_commit")
+            self.reductions += 1
+            self.publish_model()
+            self.last_duration_s = time.monotonic() - t0
+            return {"sets_reduced": int(commit.committed), "rtm_size": int(commit.rtm_size),
+                    "qt_version": int(self.qt.version), "qt_loss": loss, "duration_s": self.last_duration_s,
+                    "message": f"reduced {m} sets"}
+
+    def _on_reduce(self, request: Reduce.Request, response: Reduce.Response):
+        try:
+            out = self.reduce(request.max_sets, request.epochs)
+        except ServiceError as exc:
+            response.success = False
+            response.message = (f"{exc} (is the memory node /{self.memory_name} running? set "
+                                 f"memory_node:=<name> if it has another name)")
+            self.get_logger().warning(f"reduce failed: {response.message}")
+            return response
+        except Exception as exc:   # a bug or bad data: report and keep serving
+            response.success = False
+            response.message = f"internal error: {type(exc).__name__}: {exc}"
+            self.get_logger().error(f"reduce failed: {response.message}")
+            return response
+        response.success = True
+        response.message = out["message"]
+        response.sets_reduced = out["sets_reduced"]
+        response.rtm_size = out["rtm_size"]
+        response.qt_version = out["qt_version"]
+        response.qt_loss = out["qt_loss"]
+        response.duration_s = out["duration_s"]
+        return response
+
+    def _on_timer(self) -> None:
+        if not self._begin.service_is_ready():
+            return
+        try:
+            out = self.reduce()
+            if out["sets_reduced"]:
+                self.get_logger().info(f"timer reduction: {out['sets_reduced']} sets, QT v{out['qt_version']}, "
+                                       f"loss {out['qt_loss']:.4g}, {out['duration_s']:.2f} s")
+        except Exception as exc:
+            self.get_logger().warning(f"timer reduction failed: {exc}")
+
+
+def main(args=None) -> int:
+    """Entry point of ``ros2 run comper_agent qt_trainer_node``."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        try:
+            node = QtTrainerNode()
+        except Exception as exc:
+            rclpy.logging.get_logger("qt_trainer_node").error(f"cannot start: {exc}")
+            return 1
+        from .core.networks import configure_torch
+        configure_torch(node.num_threads or 1)
+        executor = MultiThreadedExecutor(num_threads=4)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

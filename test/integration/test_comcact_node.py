@@ -1,0 +1,110 @@
+"""comcact_node end to end over real ROS 2 (separate processes, no mocks):
+embedded bring-up on InvertedPendulum-v4 (evaluations and episodes published, run directory
+written, Ctrl-C saves a final checkpoint); external bring-up with sim_node, memory_node and
+qt_trainer_node started by ros2 run; the ddpg variant with a checkpoint round trip and resume."""
+import os
+import signal
+import time
+
+import torch
+
+from comper_agent import run_io
+from comper_agent.comcact_node import SUMMARY_QOS
+from comper_msgs.msg import EpisodeSummary, EvaluationResult
+from conftest import spin_once
+
+TASK = "InvertedPendulum-v4"
+
+
+def _args(tmp_path, run_id, *extra):
+    return ["--ros-args", "-p", f"env_id:={TASK}", "-p", f"runs_root:={tmp_path}", "-p", f"run_id:={run_id}",
+            "-p", "progress_period_s:=1.0", "-p", "transport_probe_calls:=10", "-p", "tensorboard:=false",
+            *extra]
+
+
+def _wait(proc, timeout):
+    try:
+        return proc.proc.wait(timeout=timeout)
+    except Exception:
+        raise AssertionError(f"{proc.name} did not finish within {timeout} s:\n{proc.log()[-4000:]}")
+
+
+def _evals(tmp_path, run_id):
+    return [r["step"] for r in run_io.MetricsLog.read(tmp_path / run_id / "metrics.jsonl", "eval")]
+
+
+def test_embedded_bringup_trains_publishes_and_stops_cleanly_on_ctrl_c(launch, ros_node, tmp_path):
+    name = f"comcact_{os.getpid()}"
+    evals, episodes = [], []
+    ros_node.create_subscription(EvaluationResult, f"/{name}/evaluations", evals.append, SUMMARY_QOS)
+    ros_node.create_subscription(EpisodeSummary, f"/{name}/episodes", episodes.append, SUMMARY_QOS)
+    proc = launch("comper_agent", "comcact_node",
+                  *_args(tmp_path, "emb", "-p", "total_steps:=100000", "-p", "eval_every:=150",
+                         "-p", "eval_episodes:=2", "-p", "reduce_every:=5"),
+                  "-r", f"comcact_node:__node:={name}", name=name)
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline and proc.alive():
+        spin_once(ros_node, 0.2)
+        if any(e.global_step >= 300 for e in evals):
+            break
+    assert any(e.global_step >= 300 for e in evals), f"no evaluation at step 300:\n{proc.log()[-4000:]}"
+    os.killpg(proc.proc.pid, signal.SIGINT)
+    assert _wait(proc, 60) == 0, proc.log()[-4000:]
+    log = proc.log()
+    assert "COMCACT (memory + QT step) on InvertedPendulum-v4" in log and "embedded bring-up" in log
+    assert "steps/s" in log and "ETA" in log and "time split" in log and "final checkpoint" in log
+
+    e = evals[0]
+    assert e.algorithm == "comcact" and e.env_id == TASK and e.run_id == "emb" and len(e.episode_returns) == 2
+    assert [x.global_step for x in evals[:3]] == [0, 150, 300]
+    assert {x.source for x in episodes} == {"train", "eval"}
+    run = tmp_path / "emb"
+    assert {"config.yaml", "metrics.jsonl", "progress.csv", "checkpoints"} <= {p.name for p in run.iterdir()}
+    state = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)["state"]
+    assert state["counters"]["step"] >= 300
+    assert state["qt_trainer"]["qt"]["version"] >= 1         # QT trained and checkpointed
+    assert set(state["learner"]) >= {"actor", "critic", "actor_target", "critic_target", "actor_opt",
+                                     "critic_opt", "noise"}
+    timers = run_io.MetricsLog.read(run / "metrics.jsonl", "timers")[-1]
+    assert {"sim", "memory", "qt", "learner"} <= set(timers["phases"])
+
+
+def test_external_bringup_uses_nodes_started_with_ros2_run(launch, tmp_path):
+    tag = os.getpid()
+    sim, mem, qt = f"sim_x{tag}", f"mem_x{tag}", f"qt_x{tag}"
+    launch("comper_sim", "sim_node", "--ros-args", "-p", f"env_id:={TASK}", "-r", f"__node:={sim}", name=sim)
+    launch("comper_memory", "memory_node", "--ros-args", "-r", f"__node:={mem}", name=mem)
+    launch("comper_agent", "qt_trainer_node", "--ros-args", "-p", f"memory_node:={mem}", "-r", f"__node:={qt}",
+           name=qt)
+    proc = launch("comper_agent", "comcact_node",
+                  *_args(tmp_path, "ext", "-p", "bringup:=external", "-p", f"sim_node:={sim}",
+                         "-p", f"memory_node:={mem}", "-p", f"qt_trainer_node:={qt}", "-p", "total_steps:=200",
+                         "-p", "eval_every:=100", "-p", "eval_episodes:=1", "-p", "startup_timeout_s:=60"),
+                  name="learner_ext")
+    assert _wait(proc, 240) == 0, proc.log()[-4000:]
+    assert "external bring-up" in proc.log()
+    assert _evals(tmp_path, "ext") == [0, 100, 200]
+    state = torch.load(tmp_path / "ext" / "checkpoints" / "latest.pt", weights_only=True)["state"]
+    assert state["counters"]["step"] == 200 and state["counters"]["reductions"] >= 1
+
+
+def test_ddpg_variant_checkpoint_and_resume_continue_the_step_count(launch, tmp_path):
+    common = ["-p", "algorithm:=ddpg", "-p", "eval_every:=100", "-p", "eval_episodes:=1"]
+    first = launch("comper_agent", "comcact_node", *_args(tmp_path, "dd", *common, "-p", "total_steps:=200",
+                                                            "-p", "warmup_steps:=100"), name="ddpg1")
+    assert _wait(first, 240) == 0, first.log()[-4000:]
+    assert "DDPG baseline" in first.log()
+    ck = tmp_path / "dd" / "checkpoints" / "latest.pt"
+    s1 = torch.load(ck, weights_only=True)["state"]
+    assert s1["counters"]["step"] == 200 and s1["run"]["algorithm"] == "ddpg" and "qt_trainer" not in s1
+
+    second = launch("comper_agent", "comcact_node",
+                    "--ros-args", "-p", f"env_id:={TASK}", "-p", f"resume:={tmp_path / 'dd'}", *common,
+                    "-p", "total_steps:=300", "-p", "transport_probe_calls:=0", "-p", "tensorboard:=false",
+                    name="ddpg2")
+    assert _wait(second, 240) == 0, second.log()[-4000:]
+    assert "resuming at step 200" in second.log()
+    s2 = torch.load(ck, weights_only=True)["state"]
+    assert s2["counters"]["step"] == 300 and s2["learner"]["updates"] > s1["learner"]["updates"]
+    assert s2["counters"]["episodes"] > s1["counters"]["episodes"]
+    assert _evals(tmp_path, "dd") == [0, 100, 200, 300]          # appended in the same run directory
