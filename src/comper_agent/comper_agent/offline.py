@@ -1,0 +1,607 @@
+"""Offline evaluation from recorded bags (pure: rosbags + numpy; torch only for --checkpoint).
+
+* :func:`read_runs` reads bags (types registered ONLY from the bags themselves) into one
+  :class:`RunData` per training run: the EpisodeSummary messages (train / eval / sim), the
+  EvaluationResult messages, the MemoryStats gauge and all recorded transitions (numpy).
+* :func:`reconstruct_episodes` cuts transitions into episodes (by episode_ids, else by the
+  terminated / truncated flags) and sums their rewards (the cross-check of the published returns).
+* :func:`final_performance`, :func:`tercile_summaries`, :func:`run_summary`, :func:`group_summaries`:
+  the thesis's summaries (method.md section 5).
+* :func:`discounted_returns`, :func:`q_vs_mc`, :func:`fitted_q_evaluation`, :func:`load_policy`:
+  the checkpoint's value estimates against what the logged episodes actually returned.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from comper_msgs_py.arrays import Transitions
+
+__all__ = [
+    "EpisodeRecord", "EvalPoint", "RunData", "Episode", "find_bags", "read_runs",
+    "reconstruct_episodes", "discounted_returns", "final_performance", "last_n_rule",
+    "tercile_summaries", "eval_points", "run_summary", "group_summaries", "cross_check",
+    "load_policy", "q_vs_mc", "fitted_q_evaluation", "synthetic_run",
+]
+
+TRAIN, EVAL, SIM = "train", "eval", "sim"
+
+
+# --------------------------------------------------------------------------------------------
+# data
+@dataclass
+class EpisodeRecord:
+    """One EpisodeSummary message (float64 return exactly as published)."""
+    run_id: str
+    env_id: str
+    source: str
+    episode_id: int
+    episode_return: float
+    length: int
+    frames: int
+    terminated: bool
+    truncated: bool
+    global_step: int
+    global_frames: int
+    wall_time_s: float
+    topic: str = ""
+
+
+@dataclass
+class EvalPoint:
+    """One EvaluationResult message."""
+    run_id: str
+    algorithm: str
+    env_id: str
+    global_step: int
+    episode_returns: list
+    episode_lengths: list
+    mean_return: float
+    std_return: float
+
+
+@dataclass
+class RunData:
+    run_id: str
+    bags: list = field(default_factory=list)
+    env_id: str = ""
+    algorithm: str = ""
+    episodes: list = field(default_factory=list)        # EpisodeRecord, all sources
+    evaluations: list = field(default_factory=list)     # EvalPoint
+    stats: list = field(default_factory=list)           # MemoryStats as dicts
+    transitions: Transitions | None = None
+    warnings: list = field(default_factory=list)
+
+    def train_episodes(self) -> list:
+        return sorted((e for e in self.episodes if e.source == TRAIN), key=lambda e: (e.episode_id, e.global_step))
+
+    def eval_episodes(self) -> list:
+        return [e for e in self.episodes if e.source == EVAL]
+
+
+def find_bags(paths) -> list[Path]:
+    """Bag directories (holding metadata.yaml) given bags or run directories (searched recursively)."""
+    out, seen = [], set()
+    for p in map(Path, paths):
+        if not p.exists():
+            raise FileNotFoundError(f"{p} does not exist")
+        cands = [p] if (p / "metadata.yaml").is_file() else sorted(m.parent for m in p.rglob("metadata.yaml"))
+        for c in cands:
+            if ".open" in c.parts:
+                continue
+            r = c.resolve()
+            if r not in seen:
+                seen.add(r)
+                out.append(c)
+    if not out:
+        raise FileNotFoundError(f"no rosbag2 bag (metadata.yaml) under {', '.join(map(str, paths))}")
+    return out
+
+
+def _np(seq, dtype) -> np.ndarray:
+    return np.asarray(seq, dtype=dtype).reshape(-1)
+
+
+def _array(msg) -> np.ndarray:
+    shape = tuple(int(d) for d in msg.shape)
+    data = _np(msg.data_u8, np.uint8) if msg.dtype == 1 else _np(msg.data_f32, np.float32)
+    return data.reshape(shape)
+
+
+def _transitions(msg) -> Transitions:
+    return Transitions(
+        states=_array(msg.states), actions=_array(msg.actions), rewards=_np(msg.rewards, np.float32),
+        next_states=_array(msg.next_states), terminated=_np(msg.terminated, bool),
+        truncated=_np(msg.truncated, bool), value_labels=_np(msg.value_labels, np.float32),
+        episode_ids=_np(msg.episode_ids, np.uint64), steps=_np(msg.steps, np.uint64), run_id=msg.run_id)
+
+
+def read_runs(paths, *, load_transitions: bool = True) -> dict[str, RunData]:
+    """Read every bag under `paths` into RunData per run_id (bags of one run are merged).
+
+    The typestore is built only from the definitions embedded in each bag.
+    """
+    from rosbags.rosbag2 import Reader
+
+    from .recording import bag_info, bag_typestore
+
+    runs: dict[str, RunData] = {}
+    parts: dict[str, list] = {}
+    for bag in find_bags(paths):
+        with Reader(bag) as reader:
+            store = bag_typestore(reader.connections)
+            custom = bag_info(bag).get("custom_data") or {}
+            default_run = custom.get("run_id") or bag.parent.name
+            algo = custom.get("algorithm", "")
+            touched = set()
+            for conn, _ts, raw in reader.messages():
+                typ = conn.msgtype.rsplit("/", 1)[-1]
+                if typ not in ("EpisodeSummary", "EvaluationResult", "TransitionBatch", "MemoryStats"):
+                    continue
+                if typ == "TransitionBatch" and not load_transitions:
+                    continue
+                msg = store.deserialize_cdr(raw, conn.msgtype)
+                rid = getattr(msg, "run_id", "") or default_run
+                run = runs.setdefault(rid, RunData(rid))
+                touched.add(rid)
+                if typ == "EpisodeSummary":
+                    run.episodes.append(EpisodeRecord(
+                        rid, msg.env_id, msg.source, int(msg.episode_id), float(msg.episode_return),
+                        int(msg.length), int(msg.frames), bool(msg.terminated), bool(msg.truncated),
+                        int(msg.global_step), int(msg.global_frames), float(msg.wall_time_s), conn.topic))
+                    run.env_id = run.env_id or msg.env_id
+                elif typ == "EvaluationResult":
+                    run.evaluations.append(EvalPoint(
+                        rid, msg.algorithm, msg.env_id, int(msg.global_step),
+                        _np(msg.episode_returns, np.float64).tolist(),
+                        _np(msg.episode_lengths, np.int64).tolist(),
+                        float(msg.mean_return), float(msg.std_return)))
+                    run.algorithm = msg.algorithm or run.algorithm
+                    run.env_id = run.env_id or msg.env_id
+                elif typ == "TransitionBatch":
+                    parts.setdefault(rid, []).append(_transitions(msg))
+                else:
+                    run.stats.append({k: (v.item() if hasattr(v, "item") else v)
+                                      for k, v in vars(msg).items() if k not in ("header", "__msgtype__")})
+            for rid in touched:
+                runs[rid].bags.append(str(bag))
+                if algo and not runs[rid].algorithm:
+                    runs[rid].algorithm = algo
+                if not runs[rid].algorithm:
+                    # fall back to the publishing node's name: /comcact_node/episodes -> comcact
+                    topics = [e.topic for e in runs[rid].episodes if e.source == TRAIN]
+                    if topics:
+                        runs[rid].algorithm = topics[0].strip("/").split("/")[0].removesuffix("_node")
+    for rid, run in runs.items():
+        _dedupe(run)
+        if parts.get(rid):
+            t = Transitions.concatenate(parts[rid])
+            if t.steps.size == len(t):
+                order = np.argsort(t.steps, kind="stable")
+                keep = np.ones(len(t), bool)
+                keep[1:] = np.diff(t.steps[order].astype(np.int64)) != 0
+                if not keep.all():
+                    run.warnings.append(f"{int((~keep).sum())} duplicate transitions (same step) dropped")
+                t = t.take(order[keep])
+            run.transitions = t
+    return runs
+
+
+def _dedupe(run: RunData) -> None:
+    seen, eps = set(), []
+    for e in run.episodes:
+        k = (e.source, e.episode_id, e.global_step, e.topic if e.source == SIM else "")
+        if k in seen:
+            continue
+        seen.add(k)
+        eps.append(e)
+    if len(eps) != len(run.episodes):
+        run.warnings.append(f"{len(run.episodes) - len(eps)} duplicate episode summaries dropped")
+    run.episodes = eps
+    seen, evs = set(), []
+    for ev in sorted(run.evaluations, key=lambda x: x.global_step):
+        if ev.global_step not in seen:
+            seen.add(ev.global_step)
+            evs.append(ev)
+    run.evaluations = evs
+
+
+# --------------------------------------------------------------------------------------------
+# episodes and returns
+@dataclass
+class Episode:
+    episode_id: int
+    index: np.ndarray      # indices into the transitions, in step order
+    length: int
+    episode_return: float  # float64 sum of the float32 rewards
+    terminated: bool
+    truncated: bool
+    complete: bool         # ends with terminated or truncated
+    contiguous: bool       # steps consecutive and next_state[t] == state[t+1]
+
+
+def reconstruct_episodes(t: Transitions) -> list[Episode]:
+    """Cut transitions into episodes: by episode_ids when filled, else at terminated|truncated."""
+    n = len(t)
+    if n == 0:
+        return []
+    if t.episode_ids.size == n:
+        key = t.episode_ids.astype(np.int64)
+        sub = t.steps.astype(np.int64) if t.steps.size == n else np.arange(n)
+        order = np.lexsort((sub, key))
+        ks = key[order]
+        cuts = np.flatnonzero(np.diff(ks)) + 1
+        groups = np.split(order, cuts)
+        ids = [int(key[g[0]]) for g in groups]
+    else:
+        ends = np.flatnonzero(t.terminated | t.truncated) + 1
+        groups = [g for g in np.split(np.arange(n), ends) if g.size]
+        ids = list(range(len(groups)))
+    out = []
+    steps = t.steps.astype(np.int64) if t.steps.size == n else None
+    for eid, g in zip(ids, groups):
+        last = g[-1]
+        term, trunc = bool(t.terminated[last]), bool(t.truncated[last])
+        contiguous = True
+        if g.size > 1:
+            if steps is not None and not np.all(np.diff(steps[g]) == 1):
+                contiguous = False
+            elif not np.array_equal(t.next_states[g[:-1]], t.states[g[1:]]):
+                contiguous = False
+        out.append(Episode(eid, g, int(g.size), float(np.sum(t.rewards[g], dtype=np.float64)),
+                           term, trunc, term or trunc, contiguous))
+    return out
+
+
+def discounted_returns(rewards: np.ndarray, episode_ends: np.ndarray, gamma: float) -> np.ndarray:
+    """Monte-Carlo returns G_t = r_t + gamma G_{t+1}, restarted after each index where
+    episode_ends is true (float64). Rewards must be in time order."""
+    r = np.asarray(rewards, dtype=np.float64)
+    ends = np.asarray(episode_ends, dtype=bool)
+    g = np.empty_like(r)
+    acc = 0.0
+    for i in range(r.size - 1, -1, -1):
+        if ends[i]:
+            acc = 0.0
+        acc = r[i] + gamma * acc
+        g[i] = acc
+    return g
+
+
+# --------------------------------------------------------------------------------------------
+# the thesis's summaries (method.md section 5)
+def last_n_rule(n_episodes: int, *, n: int = 10, n_small: int = 3, small_below: int = 25) -> int:
+    """Episodes averaged for the final score: the last 10, or the last 3 for runs with under 25."""
+    return n_small if n_episodes < small_below else n
+
+
+def final_performance(returns, **kw) -> tuple[float, int]:
+    """(mean of the last 10 training episode returns (last 3 with under 25 episodes), n used)."""
+    r = np.asarray(returns, dtype=np.float64)
+    if r.size == 0:
+        return math.nan, 0
+    k = min(last_n_rule(r.size, **kw), r.size)
+    return float(np.mean(r[-k:])), k
+
+
+def tercile_summaries(progress, returns, *, budget: float | None = None, n: int = 5,
+                      n_small: int = 3, small_below: int = 25) -> list[dict]:
+    """Mean of the last n (5; 3 for runs with under 25 episodes) episodes that ended by the end
+    of each tercile of the budget. progress: frames (or steps) of the run when each episode ended;
+    budget: the run's frame (or step) budget, default the last episode's progress."""
+    p = np.asarray(progress, dtype=np.float64)
+    r = np.asarray(returns, dtype=np.float64)
+    if p.size == 0:
+        return [{"tercile": k, "end": math.nan, "mean": math.nan, "n": 0} for k in (1, 2, 3)]
+    budget = float(budget if budget else p.max())
+    k_use = n_small if p.size < small_below else n
+    out = []
+    for k in (1, 2, 3):
+        end = budget * k / 3.0
+        sel = r[p <= end + 1e-9] if k < 3 else r     # the episode in progress at the budget finishes
+        m = sel[-k_use:]
+        out.append({"tercile": k, "end": end, "mean": float(np.mean(m)) if m.size else math.nan,
+                    "n": int(m.size)})
+    return out
+
+
+def eval_points(run: RunData) -> list[dict]:
+    """Evaluation points: EvaluationResult messages, else eval EpisodeSummaries grouped by step."""
+    if run.evaluations:
+        return [{"global_step": e.global_step, "mean": e.mean_return, "std": e.std_return,
+                 "n": len(e.episode_returns), "returns": list(e.episode_returns)} for e in run.evaluations]
+    by_step: dict[int, list] = {}
+    for e in run.eval_episodes():
+        by_step.setdefault(e.global_step, []).append(e.episode_return)
+    return [{"global_step": s, "mean": float(np.mean(v)), "std": float(np.std(v)), "n": len(v),
+             "returns": v} for s, v in sorted(by_step.items())]
+
+
+def cross_check(run: RunData, episodes: list[Episode] | None = None) -> dict:
+    """Published training returns vs returns summed from the recorded transitions."""
+    if run.transitions is None or len(run.transitions) == 0:
+        return {"checked": 0, "max_abs_diff": None, "mismatches": [], "missing": 0}
+    eps = episodes if episodes is not None else reconstruct_episodes(run.transitions)
+    summed = {e.episode_id: e for e in eps if e.complete}
+    diffs, mism, missing = [], [], 0
+    for s in run.train_episodes():
+        e = summed.get(s.episode_id)
+        if e is None:
+            missing += 1
+            continue
+        d = abs(e.episode_return - s.episode_return)
+        diffs.append(d)
+        # float32 rewards in the transitions vs the float64 sum the agent publishes
+        tol = 1e-5 * max(1.0, float(np.sum(np.abs(run.transitions.rewards[e.index]), dtype=np.float64))) + 1e-6
+        if d > tol or e.length != s.length:
+            mism.append({"episode_id": s.episode_id, "published": s.episode_return,
+                         "from_transitions": e.episode_return, "published_length": s.length,
+                         "transitions_length": e.length})
+    return {"checked": len(diffs), "max_abs_diff": max(diffs) if diffs else None,
+            "mismatches": mism, "missing": missing}
+
+
+def run_summary(run: RunData, *, budget: float | None = None) -> dict:
+    train = run.train_episodes()
+    returns = [e.episode_return for e in train]
+    final, k = final_performance(returns)
+    progress = [e.global_frames or e.global_step for e in train]
+    evals = eval_points(run)
+    eps = reconstruct_episodes(run.transitions) if run.transitions is not None else []
+    last_stats = run.stats[-1] if run.stats else None
+    return {
+        "run_id": run.run_id, "algorithm": run.algorithm, "env_id": run.env_id, "bags": run.bags,
+        "train_episodes": len(train),
+        "global_steps": max((e.global_step for e in train), default=0),
+        "global_frames": max((e.global_frames for e in train), default=0),
+        "final": {"mean": final, "n": k, "rule": "last 3 (under 25 episodes)" if k and len(train) < 25
+                  else "last 10"},
+        "terciles": tercile_summaries(progress, returns, budget=budget),
+        "eval_points": [{k2: v for k2, v in p.items() if k2 != "returns"} for p in evals],
+        "final_eval": evals[-1]["mean"] if evals else None,
+        "episodes": [{"episode_id": e.episode_id, "return": e.episode_return, "length": e.length,
+                      "terminated": e.terminated, "truncated": e.truncated,
+                      "global_step": e.global_step, "global_frames": e.global_frames,
+                      "wall_time_s": e.wall_time_s} for e in train],
+        "transitions": len(run.transitions) if run.transitions is not None else 0,
+        "reconstructed_episodes": sum(e.complete for e in eps),
+        "noncontiguous_episodes": sum(not e.contiguous for e in eps),
+        "cross_check": cross_check(run, eps),
+        "memory_stats": last_stats,
+        "warnings": list(run.warnings),
+    }
+
+
+def _ms(values) -> dict:
+    v = np.asarray([x for x in values if x is not None and not (isinstance(x, float) and math.isnan(x))],
+                   dtype=np.float64)
+    return {"mean": float(v.mean()) if v.size else None, "std": float(v.std()) if v.size else None,
+            "n": int(v.size)}
+
+
+def group_summaries(summaries: list[dict]) -> list[dict]:
+    """Mean +- std (population, ddof 0) across runs, grouped by (algorithm, env_id)."""
+    groups: dict[tuple, list] = {}
+    for s in summaries:
+        groups.setdefault((s["algorithm"], s["env_id"]), []).append(s)
+    out = []
+    for (algo, env), runs in sorted(groups.items()):
+        steps = sorted({p["global_step"] for r in runs for p in r["eval_points"]})
+        curve = []
+        for st in steps:
+            vals = [p["mean"] for r in runs for p in r["eval_points"] if p["global_step"] == st]
+            curve.append({"global_step": st, **_ms(vals)})
+        out.append({
+            "algorithm": algo, "env_id": env, "runs": [r["run_id"] for r in runs],
+            "final": _ms([r["final"]["mean"] for r in runs]),
+            "terciles": [_ms([r["terciles"][k]["mean"] for r in runs]) for k in range(3)],
+            "final_eval": _ms([r["final_eval"] for r in runs]),
+            "eval_curve": curve,
+        })
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# checkpoints: value estimates vs Monte-Carlo returns, fitted Q evaluation
+@dataclass
+class Policy:
+    kind: str                 # "ddpg" (actor + critic) or "dqn" (Q-network)
+    actor: object = None
+    critic: object = None
+    q: object = None
+
+    def q_values(self, states, actions):
+        import torch
+        with torch.no_grad():
+            s = torch.as_tensor(states)
+            if self.kind == "ddpg":
+                return self.critic(s.float(), torch.as_tensor(actions, dtype=torch.float32).reshape(len(s), -1)
+                                   ).reshape(-1).double().numpy()
+            q = self.q(s)
+            a = torch.as_tensor(np.asarray(actions).reshape(-1).astype(np.int64))
+            return q.gather(1, a[:, None]).reshape(-1).double().numpy()
+
+    def actions(self, states):
+        import torch
+        with torch.no_grad():
+            s = torch.as_tensor(states)
+            if self.kind == "ddpg":
+                return self.actor(s.float()).numpy()
+            return self.q(s).argmax(1).numpy()
+
+
+def load_policy(path: str | os.PathLike) -> Policy:
+    """Rebuild the networks of a comper_agent.core.checkpoint from the state-dict shapes.
+
+    COMCACT / DDPG: {"learner": {"actor": ..., "critic": ...}} (or the learner dict itself);
+    COMPER / DQN: {"learner": {"q": NatureCNN state}}.
+    """
+    from .core.checkpoint import load_checkpoint
+    from .core.networks import Actor, Critic, NatureCNN
+
+    state = load_checkpoint(path)
+    learner = state.get("learner", state)
+    if "actor" in learner and "critic" in learner:
+        a, c = learner["actor"], learner["critic"]
+        obs_dim = int(a["body.0.weight"].shape[0])
+        hidden, i = [], 1
+        while f"body.{i}.weight" in a:
+            hidden.append(int(a[f"body.{i}.weight"].shape[0]))
+            i += 3
+        center, half = a["action_center"].numpy(), a["action_half_range"].numpy()
+        actor = Actor(obs_dim, center - half, center + half, hidden)
+        actor.load_state_dict(a)
+        h1, h2 = int(c["fc1.weight"].shape[0]), int(c["fc2.weight"].shape[0])
+        mode = "output" if "bn2.weight" in c else "second_hidden"
+        act_dim = (int(c["fc2.weight"].shape[1]) - h1) if mode == "second_hidden" else int(c["out.weight"].shape[1]) - h2
+        critic = Critic(obs_dim, act_dim, (h1, h2), action_input=mode)
+        critic.load_state_dict(c)
+        actor.eval()
+        critic.eval()
+        return Policy("ddpg", actor=actor, critic=critic)
+    if "q" in learner:
+        q = learner["q"]
+        net = NatureCNN(int(q["features.0.weight"].shape[1]), int(q["head.2.weight"].shape[0]))
+        net.load_state_dict(q)
+        net.eval()
+        return Policy("dqn", q=net)
+    raise ValueError(f"{path}: no actor/critic or q state dict in the checkpoint (keys {sorted(learner)[:10]})")
+
+
+def _batched(fn, *arrays, batch: int = 4096) -> np.ndarray:
+    n = len(arrays[0])
+    return np.concatenate([fn(*(a[i:i + batch] for a in arrays)) for i in range(0, n, batch)]) if n else np.zeros(0)
+
+
+def q_vs_mc(policy: Policy, t: Transitions, gamma: float = 0.99) -> dict:
+    """The policy's Q(s, a) on the logged (s, a) of complete episodes vs the discounted MC return
+    the behaviour actually obtained from there (bias = mean(Q - G), RMSE, Pearson correlation)."""
+    eps = [e for e in reconstruct_episodes(t) if e.complete]
+    if not eps:
+        return {"n": 0}
+    idx = np.concatenate([e.index for e in eps])
+    ends = np.zeros(idx.size, bool)
+    ends[np.cumsum([e.length for e in eps]) - 1] = True
+    g = discounted_returns(t.rewards[idx], ends, gamma)
+    q = _batched(policy.q_values, t.states[idx], t.actions[idx])
+    first = np.concatenate([[0], np.cumsum([e.length for e in eps])[:-1]])
+    d = q - g
+    corr = float(np.corrcoef(q, g)[0, 1]) if q.size > 1 and q.std() > 0 and g.std() > 0 else math.nan
+    return {"n": int(idx.size), "episodes": len(eps), "gamma": gamma, "bias": float(d.mean()),
+            "rmse": float(np.sqrt(np.mean(d ** 2))), "corr": corr,
+            "mean_q": float(q.mean()), "mean_mc": float(g.mean()),
+            "initial_mean_q": float(q[first].mean()), "initial_mean_mc": float(g[first].mean()),
+            "_q": q, "_g": g}
+
+
+def fitted_q_evaluation(policy: Policy, t: Transitions, *, gamma: float = 0.99, updates: int = 2000,
+                        batch_size: int = 256, hidden: int = 256, lr: float = 1e-3,
+                        target_every: int = 100, seed: int = 0) -> dict:
+    """Fitted Q evaluation (Le et al. 2019; d3rlpy's FQE): learn Q_pi on the logged transitions
+    with targets r + gamma (1 - terminated) Q'(s', pi(s')) (truncation does not mask), a small MLP,
+    hard target copies every `target_every` updates; report V_pi = mean Q(s0, pi(s0)) over the
+    initial states of the logged episodes. Vector observations only."""
+    import torch
+    from torch import nn
+
+    if t.states.ndim != 2:
+        return {"skipped": f"FQE supports vector observations only (got {t.states.shape[1:]})"}
+    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    s = torch.as_tensor(t.states, dtype=torch.float32)
+    s2 = torch.as_tensor(t.next_states, dtype=torch.float32)
+    mu, sd = s.mean(0), s.std(0).clamp_min(1e-6)
+    discrete = policy.kind == "dqn"
+    a = torch.as_tensor(np.asarray(t.actions, dtype=np.float32).reshape(len(t), -1))
+    pi2 = torch.as_tensor(_batched(policy.actions, t.next_states)
+                          .astype(np.float32).reshape(len(t), -1))
+    r = torch.as_tensor(t.rewards, dtype=torch.float32)
+    notdone = torch.as_tensor(~t.terminated, dtype=torch.float32)
+    in_dim = s.shape[1] + a.shape[1]
+    net = nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                        nn.Linear(hidden, 1))
+    target = copy.deepcopy(net)
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    # scale returns so the MLP sees O(1) targets; results are reported in reward units
+    scale = float(max(1e-6, r.abs().mean().item() / (1 - gamma)))
+
+    def f(m, x, act):
+        return m(torch.cat([(x - mu) / sd, act], 1)).squeeze(1)
+
+    n = len(t)
+    losses = []
+    for u in range(updates):
+        i = torch.randint(0, n, (min(batch_size, n),), generator=g)
+        with torch.no_grad():
+            y = r[i] / scale + gamma * notdone[i] * f(target, s2[i], pi2[i])
+        loss = torch.nn.functional.mse_loss(f(net, s[i], a[i]), y)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+        if (u + 1) % target_every == 0:
+            target.load_state_dict(net.state_dict())
+    eps = [e for e in reconstruct_episodes(t) if e.complete] or reconstruct_episodes(t)
+    first = np.array([e.index[0] for e in eps])
+    with torch.no_grad():
+        s0 = s[first]
+        pi0 = torch.as_tensor(policy.actions(t.states[first]).astype(np.float32).reshape(len(first), -1))
+        v = f(net, s0, pi0).double().numpy() * scale
+        q_logged = _batched(lambda x, y: f(net, torch.as_tensor(x, dtype=torch.float32),
+                                           torch.as_tensor(np.asarray(y, np.float32).reshape(len(x), -1))
+                                           ).double().numpy() * scale, t.states, t.actions)
+    critic_v0 = float(np.mean(policy.q_values(t.states[first], policy.actions(t.states[first]))))
+    return {"updates": updates, "gamma": gamma, "discrete": discrete,
+            "initial_states": int(first.size), "fqe_value": float(v.mean()), "fqe_value_std": float(v.std()),
+            "critic_value": critic_v0, "final_loss": float(np.mean(losses[-50:])) if losses else None,
+            "mean_q_logged": float(q_logged.mean())}
+
+
+# --------------------------------------------------------------------------------------------
+# synthetic runs (tests and benchmarks)
+def synthetic_run(n_steps: int, *, obs_dim: int = 11, action_dim: int = 3, seed: int = 0,
+                  min_len: int = 20, max_len: int = 400, run_id: str = "synthetic") -> tuple[Transitions, list[dict]]:
+    """A Hopper-like run: contiguous episodes (next_state[t] == state[t+1]), float64 rewards summed
+    per episode as an agent publishes them. Returns (transitions, episode summaries as dicts)."""
+    rng = np.random.default_rng(seed)
+    lens = []
+    total = 0
+    while total < n_steps:
+        k = int(min(rng.integers(min_len, max_len + 1), n_steps - total))
+        lens.append(k)
+        total += k
+    states, next_states, actions, rewards, term, trunc, eids, steps = [], [], [], [], [], [], [], []
+    summaries = []
+    step = 0
+    for eid, k in enumerate(lens):
+        obs = rng.standard_normal((k + 1, obs_dim)).astype(np.float32)
+        r64 = rng.normal(1.0, 0.5, k)           # what the environment returns (float64)
+        states.append(obs[:-1])
+        next_states.append(obs[1:])
+        actions.append(rng.uniform(-1, 1, (k, action_dim)).astype(np.float32))
+        rewards.append(r64.astype(np.float32))
+        terminated = bool(rng.random() < 0.7) if k < max_len else False
+        te = np.zeros(k, bool)
+        tr = np.zeros(k, bool)
+        (te if terminated else tr)[-1] = True
+        term.append(te)
+        trunc.append(tr)
+        eids.append(np.full(k, eid, np.uint64))
+        steps.append(np.arange(step, step + k, dtype=np.uint64))
+        step += k
+        ret = 0.0
+        for x in r64:
+            ret += float(x)
+        summaries.append({"run_id": run_id, "episode_id": eid, "episode_return": ret, "length": k,
+                          "frames": k, "terminated": terminated, "truncated": not terminated,
+                          "global_step": step, "global_frames": step})
+    t = Transitions(np.concatenate(states), np.concatenate(actions), np.concatenate(rewards),
+                    np.concatenate(next_states), np.concatenate(term), np.concatenate(trunc),
+                    value_labels=rng.standard_normal(step).astype(np.float32),
+                    episode_ids=np.concatenate(eids), steps=np.concatenate(steps), run_id=run_id)
+    return t, summaries

@@ -1,0 +1,269 @@
+"""recorder_node: records the agents' episode topics into a crash-safe rosbag2 bag.
+
+    ros2 run comper_agent recorder_node --ros-args -p run_id:=hopper-s0 -p algorithm:=comcact
+    ros2 run comper_agent recorder_node --ros-args --params-file src/comper_agent/config/recorder.yaml
+
+Subscriptions use rclpy's serialized path (``raw=True``): the CDR bytes go straight into the bag,
+nothing is deserialised. The bag is written by :class:`comper_agent.recording.ChunkedBagWriter`
+(MCAP by default, sqlite3 as an option, split files closed every ``max_file_duration_s``), so a
+SIGKILL loses at most the last few seconds. See docs/recording.md.
+
+In-process use (an agent node with a ``record`` parameter)::
+
+    from comper_agent.recorder_node import RecorderNode
+    recorder = RecorderNode(context=self.context, parameter_overrides=[
+        Parameter("run_id", value=run_id), Parameter("algorithm", value="comcact"),
+        Parameter("topics", value=[f"/{self.get_name()}/transitions", ...])])
+    executor.add_node(recorder)          # any executor; its callbacks are mutually exclusive
+    ...
+    recorder.close(); recorder.destroy_node()
+"""
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import rclpy
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+
+from comper_msgs_py.ros_params import declare_config
+
+from .recording import (ChunkedBagWriter, RecorderConfig, comper_typestore, make_qos,
+                        parse_topic_spec)
+
+__all__ = ["RecorderNode", "EpisodeTopics", "EPISODE_QOS", "main", "run_directory"]
+
+#: QoS of <agent>/transitions, <agent>/episodes, <agent>/evaluations (docs/architecture.md)
+EPISODE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+
+
+def _msg_class(msgtype: str):
+    pkg, _, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+def run_directory(output_dir: str, run_id: str, bag_name: str = "bag") -> Path:
+    """<output_dir>/<run_id>/<bag_name>, or bag_name_1, _2, ... when that exists and is not empty."""
+    base = Path(output_dir) / run_id
+    cand = base / bag_name
+    k = 0
+    while cand.exists() and any(cand.iterdir()):
+        k += 1
+        cand = base / f"{bag_name}_{k}"
+    return cand
+
+
+class RecorderNode(Node):
+    """Records topics into ``<output_dir>/<run_id>/<bag_name>``. ``node_kwargs`` go to rclpy's Node
+    (context, parameter_overrides, namespace, ...)."""
+
+    def __init__(self, node_name: str = "recorder_node", **node_kwargs):
+        super().__init__(node_name, **node_kwargs)
+        try:
+            self.config: RecorderConfig = declare_config(self, RecorderConfig)
+            c = self.config
+            self.run_id = c.run_id or time.strftime("%Y%m%d-%H%M%S")
+            self.bag_path = run_directory(c.output_dir, self.run_id, c.bag_name)
+            custom = {"run_id": self.run_id, "algorithm": c.algorithm,
+                      "recorder": json.dumps({"storage": c.storage, "max_file_size_mb": c.max_file_size_mb,
+                                              "max_file_duration_s": c.max_file_duration_s}),
+                      "started_unix_s": f"{time.time():.3f}"}
+            self.writer = ChunkedBagWriter(
+                self.bag_path, storage=c.storage, typestore=comper_typestore(),
+                max_file_size_bytes=int(c.max_file_size_mb * 2**20),
+                max_file_duration_s=c.max_file_duration_s, fsync=c.fsync, custom_data=custom)
+        except Exception:
+            super().destroy_node()
+            raise
+        self._lock = threading.Lock()
+        self._closed = False
+        self._group = MutuallyExclusiveCallbackGroup()
+        self._subs: dict[str, object] = {}
+        self._pending: dict[str, str | None] = {}   # topic -> msgtype (None: to discover)
+        for spec in c.topics:
+            name, msgtype = parse_topic_spec(spec)
+            name = self.resolve_topic_name(name)
+            self._pending[name] = msgtype
+        self._subscribe_known()
+        period = min(0.25, c.max_file_duration_s / 4) if c.max_file_duration_s > 0 else 1.0
+        self._split_timer = self.create_timer(max(period, 0.02), self._on_timer, callback_group=self._group)
+        self._discovery_timer = (self.create_timer(c.discovery_period_s, self._discover, callback_group=self._group)
+                                 if self._pending else None)
+        self.get_logger().info(
+            f"recording {len(self._subs)} topic(s) into {self.bag_path} ({c.storage}, split every "
+            f"{c.max_file_duration_s:g} s or {c.max_file_size_mb:g} MB); waiting for "
+            f"{sorted(self._pending) or 'none'}")
+
+    # subscriptions -------------------------------------------------------------------------
+    def _qos_for(self, name: str, msgtype: str) -> tuple[QoSProfile, list]:
+        """Reliable for the contract's reliable topics; best effort (matches any publisher) for
+        gauges such as memory_node/stats; adapted to the publishers' offers when discovered."""
+        depth = self.config.qos_depth
+        infos = self.get_publishers_info_by_topic(name)
+        if infos:
+            reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
+            transient = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
+        else:
+            reliable = not msgtype.endswith("/MemoryStats")
+            transient = False
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE)
+        return qos, [make_qos(reliable, depth, transient)]
+
+    def _subscribe(self, name: str, msgtype: str) -> None:
+        qos, offered = self._qos_for(name, msgtype)
+        handle = self.writer.add_topic(name, msgtype, offered)
+        cls = _msg_class(msgtype)
+        self._subs[name] = self.create_subscription(
+            cls, name, lambda data, h=handle: self._on_message(h, data), qos,
+            callback_group=self._group, raw=True)
+        self._pending.pop(name, None)
+        self.get_logger().info(f"recording {name} [{msgtype}]")
+
+    def _subscribe_known(self) -> None:
+        for name, msgtype in list(self._pending.items()):
+            if msgtype is not None:
+                self._subscribe(name, msgtype)
+
+    def _discover(self) -> None:
+        if not self._pending:
+            if self._discovery_timer is not None:
+                self._discovery_timer.cancel()
+            return
+        for name, types in self.get_topic_names_and_types():
+            if name in self._pending and types:
+                try:
+                    self._subscribe(name, types[0])
+                except Exception as exc:
+                    self.get_logger().error(f"cannot record {name} [{types[0]}]: {exc}")
+                    self._pending.pop(name, None)
+
+    # writing -------------------------------------------------------------------------------
+    def _on_message(self, handle: int, data: bytes) -> None:
+        with self._lock:
+            if not self._closed:
+                self.writer.write(handle, time.time_ns(), data)
+
+    def _on_timer(self) -> None:
+        with self._lock:
+            if not self._closed and self.writer.due():
+                self.writer.split()
+
+    def flush(self) -> None:
+        """Close the open bag file now (everything received so far becomes durable)."""
+        with self._lock:
+            if not self._closed:
+                self.writer.split()
+
+    @property
+    def messages_recorded(self) -> int:
+        return self.writer.stats.messages
+
+    def close(self) -> None:
+        """Close the bag (idempotent). Call before destroy_node."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self.writer.close()
+        s = self.writer.stats
+        self.get_logger().info(
+            f"bag closed: {self.bag_path} ({s.messages} messages, {s.bytes / 2**20:.1f} MB, "
+            f"{s.files_closed} file(s); per topic {s.topic_counts})")
+
+    def destroy_node(self):
+        self.close()
+        return super().destroy_node()
+
+
+class EpisodeTopics:
+    """The publishers of the recording contract for an agent node (docs/recording.md)::
+
+        topics = EpisodeTopics(self)                       # ~/transitions, ~/episodes, ~/evaluations
+        topics.transitions(episode_transitions)            # Transitions with value_labels, episode_ids, steps
+        topics.episode(run_id=..., env_id=..., source="train", episode_id=..., episode_return=..., ...)
+        topics.evaluation(run_id=..., algorithm=..., env_id=..., global_step=..., returns=[...], lengths=[...])
+    """
+
+    def __init__(self, node: Node, prefix: str = "~", qos: QoSProfile = EPISODE_QOS):
+        from comper_msgs.msg import EpisodeSummary, EvaluationResult, TransitionBatch
+        self.node = node
+        self._EpisodeSummary, self._EvaluationResult = EpisodeSummary, EvaluationResult
+        self.transitions_pub = node.create_publisher(TransitionBatch, f"{prefix}/transitions", qos)
+        self.episodes_pub = node.create_publisher(EpisodeSummary, f"{prefix}/episodes", qos)
+        self.evaluations_pub = node.create_publisher(EvaluationResult, f"{prefix}/evaluations", qos)
+
+    def transitions(self, t) -> None:
+        from comper_msgs_py.convert import transitions_to_batch
+        msg = transitions_to_batch(t)
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        self.transitions_pub.publish(msg)
+
+    def episode(self, **fields) -> None:
+        msg = self._EpisodeSummary()
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        for k, v in fields.items():
+            setattr(msg, k, v)
+        self.episodes_pub.publish(msg)
+
+    def evaluation(self, *, returns, lengths, **fields) -> None:
+        import numpy as np
+        msg = self._EvaluationResult()
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        for k, v in fields.items():
+            setattr(msg, k, v)
+        r = np.asarray(returns, dtype=np.float64)
+        msg.episode_returns = r.tolist()
+        msg.episode_lengths = [int(x) for x in lengths]
+        msg.mean_return = float(r.mean()) if r.size else 0.0
+        msg.std_return = float(r.std()) if r.size else 0.0
+        self.evaluations_pub.publish(msg)
+
+    def destroy(self) -> None:
+        for p in (self.transitions_pub, self.episodes_pub, self.evaluations_pub):
+            self.node.destroy_publisher(p)
+
+
+def main(args=None) -> int:
+    """Entry point of ``ros2 run comper_agent recorder_node``: 0 on Ctrl-C / SIGTERM."""
+    argv = sys.argv if args is None else args
+    if "-h" in argv[1:] or "--help" in argv[1:]:
+        print(__doc__)
+        print("Parameters (--ros-args -p name:=value):")
+        from comper_msgs_py.params import describe, spec_of
+        for f, default, _ in spec_of(RecorderConfig):
+            print(f"  {f.name} (default {default!r}): {describe(f)}")
+        return 0
+    rclpy.init(args=args)
+    node = None
+    try:
+        try:
+            node = RecorderNode()
+        except Exception as exc:
+            rclpy.logging.get_logger("recorder_node").error(f"cannot start: {type(exc).__name__}: {exc}")
+            return 1
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

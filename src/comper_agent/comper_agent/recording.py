@@ -1,0 +1,549 @@
+"""Crash-safe rosbag2 writing for the recorder (pure: rosbags only, no rclpy).
+
+A bag is a rosbag2 directory (``metadata.yaml`` + storage files) written as a sequence of
+**split files**, exactly like rosbag2's ``max_bagfile_size`` / ``max_bagfile_duration`` splitting:
+
+    runs/<run_id>/bag/
+        metadata.yaml          # lists only the *closed* files; rewritten atomically after each split
+        bag_0.mcap             # each closed file is a complete MCAP (summary, schemas, index)
+        bag_1.mcap
+        .open/bag_2/bag_2.mcap # the file being written (not listed; lost or ignored after a crash)
+
+Each file is written by a fresh ``rosbags.rosbag2.Writer`` in the hidden ``.open`` folder and,
+when closed (size or duration reached, or on ``close()``), fsynced and renamed into the bag
+folder; then ``metadata.yaml`` is rewritten (temp file + rename). A process killed with SIGKILL
+therefore leaves a bag that opens with any rosbag2 reader and holds every message written up to
+the last split (at most ``max_file_duration_s`` old). ``repair_bag`` rebuilds ``metadata.yaml``
+from the complete files present (e.g. after a kill between the rename and the metadata update).
+
+Types: ``comper_typestore()`` is the ROS 2 Jazzy typestore of rosbags plus the comper_msgs
+types parsed from the installed ``.msg`` files. ``Writer.add_connection`` embeds the full
+definition (nested ``comper_msgs/Array``, ``std_msgs/Header``, ``builtin_interfaces/Time``) in
+every file (MCAP schema records / sqlite3 ``message_definitions``), and the RIHS01 hashes equal
+the ones rosidl generates, so a reader needs nothing but the bag (``bag_typestore``).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from io import StringIO
+from pathlib import Path
+
+from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
+                                QosTime)
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.metadata import dump_qos_v9
+from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+from ruamel.yaml import YAML
+
+__all__ = ["comper_typestore", "find_msg_dir", "bag_typestore", "ChunkedBagWriter", "repair_bag",
+           "RecorderConfig", "parse_topic_spec", "bag_info", "write_run_bag", "transitions_cdr",
+           "episode_cdr", "evaluation_cdr", "TYPE_BY_SUFFIX", "DEFAULT_TOPICS", "write_metadata",
+           "make_qos", "STORAGE_SUFFIX", "BAG_VERSION"]
+
+BAG_VERSION = 9
+STORAGE_SUFFIX = {"mcap": ".mcap", "sqlite3": ".db3"}
+_PLUGIN = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
+_OPEN_DIR = ".open"
+
+
+# --------------------------------------------------------------------------------------------
+# types
+def find_msg_dir() -> Path:
+    """The folder holding comper_msgs' installed .msg files (ament index, else the source tree)."""
+    candidates = []
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        candidates.append(Path(get_package_share_directory("comper_msgs")) / "msg")
+    except Exception:  # not installed / AMENT_PREFIX_PATH unset
+        pass
+    for prefix in filter(None, os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)):
+        candidates.append(Path(prefix) / "share" / "comper_msgs" / "msg")
+    candidates.append(Path(__file__).resolve().parents[2] / "comper_msgs" / "msg")
+    for c in candidates:
+        if (c / "TransitionBatch.msg").is_file():
+            return c
+    raise FileNotFoundError("comper_msgs .msg files not found (source env.sh or build the workspace)")
+
+
+_TYPESTORE = None
+
+
+def comper_typestore(msg_dir: str | os.PathLike | None = None):
+    """rosbags typestore: ROS 2 Jazzy standard types + every comper_msgs message (cached)."""
+    global _TYPESTORE
+    if _TYPESTORE is not None and msg_dir is None:
+        return _TYPESTORE
+    store = get_typestore(Stores.ROS2_JAZZY)
+    typs = {}
+    for f in sorted(Path(msg_dir or find_msg_dir()).glob("*.msg")):
+        typs.update(get_types_from_msg(f.read_text(), f"comper_msgs/msg/{f.stem}"))
+    store.register(typs)
+    if msg_dir is None:
+        _TYPESTORE = store
+    return store
+
+
+def bag_typestore(connections):
+    """A typestore built ONLY from the definitions embedded in a bag's connections
+    (``rosbags.rosbag2.Reader(...).connections``); checks the RIHS01 hashes."""
+    from rosbags.interfaces import MessageDefinitionFormat
+    store = get_typestore(Stores.EMPTY)
+    typs = {}
+    for c in connections:
+        if c.msgdef.format == MessageDefinitionFormat.MSG:
+            typs.update(get_types_from_msg(c.msgdef.data, c.msgtype))
+        elif c.msgdef.format == MessageDefinitionFormat.IDL:
+            sep = "=" * 80 + "\n"
+            if c.msgdef.data.startswith(f"{sep}IDL: "):
+                for part in c.msgdef.data.split(sep)[1:]:
+                    typs.update(get_types_from_idl(part.split("\n", 1)[1]))
+            else:
+                typs.update(get_types_from_idl(c.msgdef.data))
+        # else: a topic listed without messages carries no definition; nothing to decode
+    store.register(typs)
+    for c in connections:
+        if c.msgtype in typs and c.digest and store.hash_rihs01(c.msgtype) != c.digest:
+            raise ValueError(f"{c.msgtype}: embedded definition hash {store.hash_rihs01(c.msgtype)} "
+                             f"!= recorded {c.digest}")
+    return store
+
+
+def make_qos(reliable: bool = True, depth: int = 100, transient_local: bool = False) -> Qos:
+    """A rosbags Qos record (what goes into offered_qos_profiles)."""
+    zero = QosTime(0, 0)
+    return Qos(QosHistory.KEEP_LAST, int(depth),
+               QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+               QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
+               zero, zero, QosLiveliness.AUTOMATIC, zero, False)
+
+
+# --------------------------------------------------------------------------------------------
+# writer
+@dataclass
+class _Topic:
+    name: str
+    msgtype: str
+    qos: list
+    digest: str = ""
+    count: int = 0           # messages in closed files
+
+
+@dataclass
+class _FileInfo:
+    name: str
+    start: int
+    end: int
+    count: int
+
+
+@dataclass
+class WriterStats:
+    files_closed: int = 0
+    messages: int = 0        # messages written (open file included)
+    bytes: int = 0           # payload bytes written
+    split_seconds: float = 0.0  # time spent closing files and rewriting metadata
+    topic_counts: dict = field(default_factory=dict)
+
+
+class ChunkedBagWriter:
+    """A rosbag2 bag written as split files closed regularly (see module doc).
+
+    storage: "mcap" (default, rosbag2's default since Iron) or "sqlite3".
+    max_file_size_bytes: split when the open file's payload reaches this (0 = never).
+    max_file_duration_s: split when the open file is this old (0 = never); bounds what a crash loses.
+    custom_data: strings written into metadata.yaml's custom_data (run id, algorithm, ...).
+    """
+
+    def __init__(self, path: str | os.PathLike, *, storage: str = "mcap", typestore=None,
+                 max_file_size_bytes: int = 256 * 2**20, max_file_duration_s: float = 5.0,
+                 fsync: bool = True, custom_data: dict | None = None, clock=time.monotonic):
+        if storage not in _PLUGIN:
+            raise ValueError(f"storage {storage!r} is not one of {sorted(_PLUGIN)}")
+        self.path = Path(path)
+        if self.path.exists() and any(self.path.iterdir()):
+            raise FileExistsError(f"{self.path} exists and is not empty; a bag is never overwritten")
+        self.path.mkdir(parents=True, exist_ok=True)
+        (self.path / _OPEN_DIR).mkdir(exist_ok=True)
+        self.storage = storage
+        self.typestore = typestore if typestore is not None else comper_typestore()
+        self.max_file_size_bytes = int(max_file_size_bytes)
+        self.max_file_duration_s = float(max_file_duration_s)
+        self.fsync = bool(fsync)
+        self.custom_data = {str(k): str(v) for k, v in (custom_data or {}).items()}
+        self._clock = clock
+        self._topics: list[_Topic] = []
+        self._files: list[_FileInfo] = []
+        self._writer: Writer | None = None
+        self._conns: dict[int, object] = {}      # topic handle -> rosbags Connection of the open file
+        self._file_counts: dict[int, int] = {}
+        self._file_bytes = 0
+        self._file_opened = 0.0
+        self._file_start = 2**63 - 1
+        self._file_end = 0
+        self._closed = False
+        self.stats = WriterStats()
+        self._write_metadata()  # an empty bag opens from the start
+
+    # topics --------------------------------------------------------------------------------
+    def add_topic(self, topic: str, msgtype: str, qos: list | None = None) -> int:
+        """Register a topic; returns the handle for write(). msgtype like comper_msgs/msg/EpisodeSummary."""
+        if msgtype not in self.typestore.fielddefs:
+            raise KeyError(f"unknown message type {msgtype} (not in the typestore)")
+        for i, t in enumerate(self._topics):
+            if t.name == topic:
+                if t.msgtype != msgtype:
+                    raise ValueError(f"topic {topic} already recorded with type {t.msgtype}")
+                return i
+        self._topics.append(_Topic(topic, msgtype, list(qos or []),
+                                   self.typestore.hash_rihs01(msgtype)))
+        self.stats.topic_counts[topic] = 0
+        return len(self._topics) - 1
+
+    @property
+    def topics(self) -> list[tuple[str, str]]:
+        return [(t.name, t.msgtype) for t in self._topics]
+
+    # writing -------------------------------------------------------------------------------
+    def _open_file(self) -> None:
+        name = f"bag_{len(self._files)}"
+        staging = self.path / _OPEN_DIR / name
+        if staging.exists():
+            shutil.rmtree(staging)
+        self._writer = Writer(staging, version=BAG_VERSION, storage_plugin=_PLUGIN[self.storage])
+        self._writer.open()
+        self._conns = {}
+        self._file_counts = {}
+        self._file_bytes = 0
+        self._file_opened = self._clock()
+        self._file_start, self._file_end = 2**63 - 1, 0
+        for h in range(len(self._topics)):   # every file embeds every definition
+            self._connect(h)
+
+    def _connect(self, handle: int):
+        t = self._topics[handle]
+        conn = self._writer.add_connection(t.name, t.msgtype, typestore=self.typestore,
+                                           offered_qos_profiles=t.qos)
+        self._conns[handle] = conn
+        self._file_counts[handle] = 0
+        return conn
+
+    def write(self, handle: int, timestamp_ns: int, data: bytes | memoryview) -> None:
+        """Append one CDR-serialised message (with its 4-byte encapsulation header)."""
+        if self._closed:
+            raise RuntimeError("bag writer is closed")
+        if self._writer is None:
+            self._open_file()
+        conn = self._conns.get(handle)
+        if conn is None:
+            conn = self._connect(handle)
+        self._writer.write(conn, int(timestamp_ns), data)
+        n = len(data)
+        self._file_counts[handle] += 1
+        self._file_bytes += n
+        self._file_start = min(self._file_start, int(timestamp_ns))
+        self._file_end = max(self._file_end, int(timestamp_ns))
+        self.stats.messages += 1
+        self.stats.bytes += n
+        self.stats.topic_counts[self._topics[handle].name] += 1
+        if self.max_file_size_bytes and self._file_bytes >= self.max_file_size_bytes:
+            self.split()
+
+    def due(self) -> bool:
+        """True when the open file is older than max_file_duration_s (call split())."""
+        return (self._writer is not None and self.max_file_duration_s > 0
+                and self._clock() - self._file_opened >= self.max_file_duration_s)
+
+    def maybe_split(self) -> bool:
+        if self.due():
+            self.split()
+            return True
+        return False
+
+    def split(self) -> None:
+        """Close the open file (if it holds messages), move it into the bag, rewrite metadata."""
+        if self._writer is None:
+            return
+        t0 = time.perf_counter()
+        writer, self._writer = self._writer, None
+        writer.close()
+        staging = writer.path
+        name = f"bag_{len(self._files)}{STORAGE_SUFFIX[self.storage]}"
+        src = staging / f"{staging.name}{STORAGE_SUFFIX[self.storage]}"
+        if self.fsync:
+            with open(src, "rb+") as f:
+                os.fsync(f.fileno())
+        os.replace(src, self.path / name)
+        shutil.rmtree(staging, ignore_errors=True)
+        self._files.append(_FileInfo(name, self._file_start, self._file_end, sum(self._file_counts.values())))
+        for h, c in self._file_counts.items():
+            self._topics[h].count += c
+        self._write_metadata()
+        self.stats.files_closed += 1
+        self.stats.split_seconds += time.perf_counter() - t0
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self.split()
+        self._closed = True
+        shutil.rmtree(self.path / _OPEN_DIR, ignore_errors=True)
+
+    def __enter__(self) -> "ChunkedBagWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # metadata ------------------------------------------------------------------------------
+    def _write_metadata(self) -> None:
+        write_metadata(self.path, self.storage, [(t.name, t.msgtype, t.qos, t.digest, t.count)
+                                                 for t in self._topics],
+                       self._files, self.custom_data, fsync=self.fsync)
+
+
+def write_metadata(path: Path, storage: str, topics, files, custom_data: dict, *, fsync: bool = True) -> None:
+    """Write rosbag2 v9 metadata.yaml for `files` (atomic: temp file, fsync, rename).
+
+    topics: (name, msgtype, qos list, rihs01, message count); files: _FileInfo-like records.
+    """
+    start = min((f.start for f in files if f.count), default=0)
+    end = max((f.end for f in files if f.count), default=0)
+    count = sum(f.count for f in files)
+    info = {
+        "version": BAG_VERSION,
+        "storage_identifier": storage,
+        "relative_file_paths": [f.name for f in files],
+        "duration": {"nanoseconds": max(0, end - start)},
+        "starting_time": {"nanoseconds_since_epoch": start},
+        "message_count": count,
+        "topics_with_message_count": [
+            {"topic_metadata": {"name": name, "type": msgtype, "serialization_format": "cdr",
+                                "offered_qos_profiles": dump_qos_v9(list(qos)),
+                                "type_description_hash": digest},
+             "message_count": n}
+            for name, msgtype, qos, digest, n in topics],
+        "compression_format": "",
+        "compression_mode": "",
+        "files": [{"path": f.name, "starting_time": {"nanoseconds_since_epoch": f.start if f.count else 0},
+                   "duration": {"nanoseconds": max(0, f.end - f.start) if f.count else 0},
+                   "message_count": f.count} for f in files],
+        "custom_data": dict(custom_data) or None,
+        "ros_distro": "rosbags",
+    }
+    yaml = YAML(typ="safe")
+    yaml.default_flow_style = False
+    buf = StringIO()
+    yaml.dump({"rosbag2_bagfile_information": info}, buf)
+    tmp = path / "metadata.yaml.tmp"
+    with open(tmp, "w", encoding="utf8") as f:
+        f.write(buf.getvalue())
+        if fsync:
+            f.flush()
+            os.fsync(f.fileno())
+    os.replace(tmp, path / "metadata.yaml")
+    if fsync:
+        try:
+            fd = os.open(path, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        except OSError:
+            pass
+
+
+def repair_bag(path: str | os.PathLike) -> dict:
+    """Rebuild ``metadata.yaml`` of a split bag from the complete storage files present.
+
+    Files that do not open (the one being written when a process died) are moved to
+    ``<bag>/.open/`` untouched. Returns {"files": [...], "skipped": [...], "messages": n}.
+    """
+    from rosbags.rosbag2 import Reader
+    path = Path(path)
+    custom = {}
+    storage = None
+    meta = path / "metadata.yaml"
+    if meta.exists():
+        try:
+            old = YAML(typ="safe").load(meta.read_text())["rosbag2_bagfile_information"]
+            custom = old.get("custom_data") or {}
+            storage = old.get("storage_identifier")
+        except Exception:
+            pass
+    cands = sorted((p for p in path.iterdir() if p.suffix in (".mcap", ".db3")),
+                   key=lambda p: (int(p.stem.rsplit("_", 1)[-1]) if p.stem.rsplit("_", 1)[-1].isdigit() else 1 << 30, p.name))
+    files, skipped, topics = [], [], {}
+    for p in cands:
+        st = "mcap" if p.suffix == ".mcap" else "sqlite3"
+        if storage is None:
+            storage = st
+        if st != storage:
+            skipped.append(p.name)
+            continue
+        try:
+            with Reader(p) as r:
+                counts = {}
+                lo, hi, n = 2**63 - 1, 0, 0
+                conns = {c.id: c for c in r.connections}
+                for c, ts, _ in r.messages():
+                    counts[c.topic] = counts.get(c.topic, 0) + 1
+                    lo, hi, n = min(lo, ts), max(hi, ts), n + 1
+                for c in conns.values():
+                    t = topics.setdefault(c.topic, [c.topic, c.msgtype, list(c.ext.offered_qos_profiles), c.digest, 0])
+                    t[4] += counts.get(c.topic, 0)
+            files.append(_FileInfo(p.name, lo, hi, n))
+        except Exception:
+            (path / _OPEN_DIR).mkdir(exist_ok=True)
+            os.replace(p, path / _OPEN_DIR / p.name)
+            skipped.append(p.name)
+    write_metadata(path, storage or "mcap", [tuple(v) for v in topics.values()], files, custom)
+    return {"files": [f.name for f in files], "skipped": skipped, "messages": sum(f.count for f in files)}
+
+
+# --------------------------------------------------------------------------------------------
+# recorder configuration (declared as ROS parameters by recorder_node)
+from comper_msgs_py.params import param as _param  # noqa: E402  (pure: no rclpy)
+
+DEFAULT_TOPICS = (
+    "/comcact_node/transitions", "/comcact_node/episodes", "/comcact_node/evaluations",
+    "/comper_node/transitions", "/comper_node/episodes", "/comper_node/evaluations",
+    "/memory_node/stats", "/sim_node/episodes",
+)
+
+#: message type by the last part of a topic name (the topic contract, docs/recording.md)
+TYPE_BY_SUFFIX = {
+    "transitions": "comper_msgs/msg/TransitionBatch",
+    "episodes": "comper_msgs/msg/EpisodeSummary",
+    "evaluations": "comper_msgs/msg/EvaluationResult",
+    "stats": "comper_msgs/msg/MemoryStats",
+}
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    """Episode recorder (recorder_node): which topics, where, how the bag is split."""
+    topics: list[str] = _param(
+        list(DEFAULT_TOPICS),
+        "topics to record; 'name' (type from the name's last part: transitions, episodes, "
+        "evaluations, stats; otherwise discovered from the graph) or 'name:pkg/msg/Type'. "
+        "Relative names resolve in the recorder's namespace")
+    output_dir: str = _param("runs", "root of the run directories: <output_dir>/<run_id>/<bag_name>")
+    run_id: str = _param("", "training run id (the run directory's name); empty = the start time, "
+                             "YYYYmmdd-HHMMSS")
+    bag_name: str = _param("bag", "name of the bag directory inside the run directory (bag_1, bag_2, "
+                                  "... when it exists already)")
+    algorithm: str = _param("", "algorithm label written into the bag's custom_data (evaluate groups by "
+                                "it when no EvaluationResult names the algorithm)")
+    storage: str = _param("mcap", "rosbag2 storage plugin", choices=("mcap", "sqlite3"))
+    max_file_size_mb: float = _param(256.0, "split the bag when the open file holds this many MB "
+                                            "(rosbag2 max_bagfile_size); 0 = never", minimum=0.0)
+    max_file_duration_s: float = _param(
+        5.0, "split the bag when the open file is this old (rosbag2 max_bagfile_duration); each "
+             "closed file is complete, so this bounds what a SIGKILL loses; 0 = never", minimum=0.0)
+    fsync: bool = _param(True, "fsync each closed file and metadata.yaml (survives power loss, "
+                               "not only process death)")
+    qos_depth: int = _param(100, "history depth of the recorder's subscriptions", minimum=1)
+    discovery_period_s: float = _param(
+        0.5, "period of the graph look-up for topics whose type is not known from their name",
+        minimum=0.05)
+
+
+def parse_topic_spec(spec: str) -> tuple[str, str | None]:
+    """'name' or 'name:pkg/msg/Type' -> (name, msgtype or None); msgtype from the suffix map."""
+    name, _, typ = spec.partition(":")
+    name = name.strip()
+    if typ:
+        typ = typ.strip()
+        if typ.count("/") == 1:
+            pkg, t = typ.split("/")
+            typ = f"{pkg}/msg/{t}"
+        return name, typ
+    return name, TYPE_BY_SUFFIX.get(name.rstrip("/").rsplit("/", 1)[-1])
+
+
+def bag_info(path: str | os.PathLike) -> dict:
+    """The bag's metadata.yaml (rosbag2_bagfile_information) as a dict."""
+    return YAML(typ="safe").load((Path(path) / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+
+
+# --------------------------------------------------------------------------------------------
+# building messages without rclpy (synthetic bags for tests and benchmarks, conversions)
+def _ros_array(store, x):
+    import numpy as np
+    x = np.asarray(x)
+    u8 = x.dtype == np.uint8
+    return store.types["comper_msgs/msg/Array"](
+        dtype=1 if u8 else 0, shape=np.asarray(x.shape, np.uint32),
+        data_f32=np.zeros(0, np.float32) if u8 else np.ascontiguousarray(x, np.float32).ravel(),
+        data_u8=np.ascontiguousarray(x).ravel() if u8 else np.zeros(0, np.uint8))
+
+
+def _header(store, stamp_ns: int = 0):
+    T = store.types
+    return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+        sec=int(stamp_ns // 10**9), nanosec=int(stamp_ns % 10**9)), frame_id="")
+
+
+def transitions_cdr(store, t, stamp_ns: int = 0) -> bytes:
+    """comper_msgs_py.arrays.Transitions -> CDR bytes of a comper_msgs/TransitionBatch."""
+    import numpy as np
+    msg = store.types["comper_msgs/msg/TransitionBatch"](
+        header=_header(store, stamp_ns), run_id=t.run_id, states=_ros_array(store, t.states),
+        actions=_ros_array(store, np.asarray(t.actions, np.float32)),
+        rewards=np.asarray(t.rewards, np.float32), next_states=_ros_array(store, t.next_states),
+        terminated=np.asarray(t.terminated, bool), truncated=np.asarray(t.truncated, bool),
+        value_labels=np.asarray(t.value_labels, np.float32), episode_ids=np.asarray(t.episode_ids, np.uint64),
+        steps=np.asarray(t.steps, np.uint64))
+    return bytes(store.serialize_cdr(msg, "comper_msgs/msg/TransitionBatch"))
+
+
+def episode_cdr(store, stamp_ns: int = 0, **fields) -> bytes:
+    """Keyword fields of comper_msgs/EpisodeSummary (missing ones default to 0 / '' / False)."""
+    defaults = dict(run_id="", env_id="", source="train", episode_id=0, episode_return=0.0, length=0,
+                    frames=0, terminated=False, truncated=False, global_step=0, global_frames=0, wall_time_s=0.0)
+    defaults.update(fields)
+    msg = store.types["comper_msgs/msg/EpisodeSummary"](header=_header(store, stamp_ns), **defaults)
+    return bytes(store.serialize_cdr(msg, "comper_msgs/msg/EpisodeSummary"))
+
+
+def evaluation_cdr(store, stamp_ns: int = 0, *, returns, lengths, **fields) -> bytes:
+    import numpy as np
+    r = np.asarray(returns, np.float64)
+    defaults = dict(run_id="", algorithm="", env_id="", global_step=0)
+    defaults.update(fields)
+    msg = store.types["comper_msgs/msg/EvaluationResult"](
+        header=_header(store, stamp_ns), episode_returns=r, episode_lengths=np.asarray(lengths, np.uint32),
+        mean_return=float(r.mean()) if r.size else 0.0, std_return=float(r.std()) if r.size else 0.0, **defaults)
+    return bytes(store.serialize_cdr(msg, "comper_msgs/msg/EvaluationResult"))
+
+
+def write_run_bag(path, transitions, summaries, evaluations=(), *, agent: str = "comcact_node",
+                  env_id: str = "Hopper-v4", algorithm: str = "comcact", storage: str = "mcap",
+                  max_file_size_bytes: int = 256 * 2**20) -> Path:
+    """Write a run as an agent + recorder would: per episode one TransitionBatch then its
+    EpisodeSummary; evaluations: (global_step, returns, lengths)."""
+    import numpy as np
+    store = comper_typestore()
+    ts = 1_700_000_000 * 10**9
+    with ChunkedBagWriter(path, storage=storage, max_file_duration_s=0, max_file_size_bytes=max_file_size_bytes,
+                          custom_data={"run_id": transitions.run_id, "algorithm": algorithm}) as w:
+        ht = w.add_topic(f"/{agent}/transitions", "comper_msgs/msg/TransitionBatch", [make_qos()])
+        he = w.add_topic(f"/{agent}/episodes", "comper_msgs/msg/EpisodeSummary", [make_qos()])
+        hv = w.add_topic(f"/{agent}/evaluations", "comper_msgs/msg/EvaluationResult", [make_qos()])
+        evals = sorted(evaluations, key=lambda e: e[0])
+        ids = np.asarray(transitions.episode_ids, np.int64)
+        bounds = np.flatnonzero(np.diff(ids)) + 1
+        starts = np.concatenate([[0], bounds])
+        ends = np.concatenate([bounds, [len(transitions)]])
+        for s, a, b in zip(summaries, starts, ends):
+            ts += 10**6
+            w.write(ht, ts, transitions_cdr(store, transitions.take(slice(int(a), int(b))), ts))
+            w.write(he, ts, episode_cdr(store, ts, env_id=env_id, **s))
+            while evals and evals[0][0] <= s["global_step"]:
+                step, rets, lens = evals.pop(0)
+                w.write(hv, ts, evaluation_cdr(store, ts, returns=rets, lengths=lens, run_id=transitions.run_id,
+                                               algorithm=algorithm, env_id=env_id, global_step=int(step)))
+    return Path(path)
