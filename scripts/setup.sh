@@ -72,6 +72,12 @@ STAMP="$ROOT/install/.comper-build-hash"
 if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$SRC_HASH" ] && [ -f "$ROOT/install/local_setup.bash" ]; then
   say "workspace build up to date"
 else
+  # CMake caches the interpreter and include paths: a build made against another venv is stale
+  if [ -f "$ROOT/build/.comper-venv" ] && [ "$(cat "$ROOT/build/.comper-venv")" != "$VENV" ]; then
+    say "the venv changed since the last build: removing build/ and install/"
+    rm -rf "$ROOT/build" "$ROOT/install"
+  fi
+  mkdir -p "$ROOT/build" && echo "$VENV" > "$ROOT/build/.comper-venv"
   say "colcon build (log: log/latest_build)"
   start=$(date +%s)
   if ! colcon build --metas colcon.meta --event-handlers console_cohesion- summary+ status- \

@@ -48,26 +48,6 @@ def _register_ale() -> None:
         _ALE_REGISTERED = True
 
 
-def _ensure_imageio() -> None:
-    """gymnasium 1.4's MuJoCo package imports ``imageio`` at module level (mujoco_rendering), but
-    only uses it to save rendered images; gymnasium's plain ``mujoco`` requirement does not pull it
-    (the ``gymnasium[mujoco]`` extra would). Without it every MuJoCo id fails to make, so when it is
-    missing we register a stand-in that raises only if an image is actually written."""
-    import importlib.util
-    import sys
-    import types
-    if "imageio" in sys.modules or importlib.util.find_spec("imageio") is not None:
-        return
-    stub = types.ModuleType("imageio")
-    stub.__doc__ = "comper_sim stand-in: imageio is not installed (rendering to files unavailable)"
-
-    def imwrite(*_args, **_kwargs):
-        raise ModuleNotFoundError("imageio is not installed; install it to save rendered MuJoCo images")
-
-    stub.imwrite = imwrite
-    sys.modules["imageio"] = stub
-
-
 def _make_error(env_id: str, exc: BaseException) -> EnvError:
     text = str(exc).strip() or type(exc).__name__
     return EnvError(f"cannot make environment '{env_id}': {text}")
@@ -112,7 +92,6 @@ class VectorEnv(SimEnv):
         gym = _gym()
         self.env_id = config.env_id
         try:
-            _ensure_imageio()
             spec = gym.spec(config.env_id)
             if config.max_episode_steps < 0:
                 spec = dataclasses.replace(spec, max_episode_steps=None)
