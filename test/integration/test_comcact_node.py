@@ -108,3 +108,25 @@ def test_ddpg_variant_checkpoint_and_resume_continue_the_step_count(launch, tmp_
     assert s2["counters"]["step"] == 300 and s2["learner"]["updates"] > s1["learner"]["updates"]
     assert s2["counters"]["episodes"] > s1["counters"]["episodes"]
     assert _evals(tmp_path, "dd") == [0, 100, 200, 300]          # appended in the same run directory
+
+
+def test_record_parameter_writes_a_bag_that_reproduces_the_training_returns(launch, tmp_path):
+    """record:=true: the in-process recorder bags the run; the bag's episode returns equal those
+    the node logged, every training episode's transitions are in it, and evaluate reads it."""
+    from comper_agent import offline
+
+    proc = launch("comper_agent", "comcact_node",
+                  *_args(tmp_path, "rec", "-p", "algorithm:=ddpg", "-p", "total_steps:=400", "-p", "warmup_steps:=150",
+                         "-p", "eval_every:=200", "-p", "eval_episodes:=2", "-p", "record:=true",
+                         "-p", "transport_probe_calls:=0"), name="rec")
+    assert _wait(proc, 240) == 0, proc.log()[-4000:]
+    logged = [(r["episode"], r["ret"], r["length"])
+              for r in run_io.MetricsLog.read(tmp_path / "rec" / "metrics.jsonl", "episode") if r["source"] == "train"]
+    assert len(logged) >= 3
+    runs = offline.read_runs([tmp_path / "rec"])
+    (run,) = runs.values()
+    bagged = [(e.episode_id, e.episode_return, e.length) for e in run.train_episodes()]
+    assert bagged == logged                                     # exact float64 equality
+    check = offline.cross_check(run)
+    assert check["checked"] == len(logged) and not check["mismatches"] and check["missing"] == 0
+    assert [p.global_step for p in run.evaluations] == [0, 200, 400]

@@ -49,7 +49,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from comper_msgs.msg import EpisodeSummary, EvaluationResult
+from comper_msgs.msg import EpisodeSummary, EvaluationResult, TransitionBatch
 from comper_msgs.msg import QTModel as QTModelMsg
 from comper_msgs.srv import EnvInfo, GetStats, Reduce, Reset, Sample, Step, StepMany, Store
 from comper_msgs_py.arrays import Transitions
@@ -108,6 +108,9 @@ LEARNER_PARAMS = [
      "always written"),
     ("keep_checkpoints", 3, "step_<N>.pt files kept besides latest.pt"),
     ("progress_period_s", 5.0, "seconds between console progress lines"),
+    ("record", False, "record this run's topics (transitions, episodes, evaluations, memory stats, sim "
+     "episodes) into a rosbag2 bag in <run dir>/bag with an in-process recorder_node (docs/recording.md)"),
+    ("record_storage", "mcap", "bag storage when record is on: mcap | sqlite3"),
     ("tensorboard", True, "write TensorBoard scalars to <run dir>/tb"),
     ("sim_node", "sim_node", "name of the simulation node"),
     ("memory_node", "memory_node", "name of the memory node (comcact)"),
@@ -206,6 +209,9 @@ class ComcactNode(Node):
         # publishers / subscriptions (served by the background executor)
         self.eval_pub = self.create_publisher(EvaluationResult, "~/evaluations", SUMMARY_QOS)
         self.episode_pub = self.create_publisher(EpisodeSummary, "~/episodes", SUMMARY_QOS)
+        # one TransitionBatch per finished training episode, labels as stored (recording contract)
+        self.transitions_pub = self.create_publisher(TransitionBatch, "~/transitions", SUMMARY_QOS)
+        self.ep_parts: list[Transitions] = []
         self.qt_local = None
         self.qt_cond = threading.Condition()
         self.qt_received = 0
@@ -225,12 +231,30 @@ class ComcactNode(Node):
                 qt_name=p.qt_trainer_node if self.comcact else None,
                 qt_params={"memory_node": p.memory_node, "reduce_batch": int(p.reduce_batch)})
             nodes += self.embedded.all
+        self.recorder = None
+        if p.record:
+            nodes.append(self._make_recorder(run_id))
         self.spinner = Spinner(nodes, self.context, num_threads=4).start()
         try:
             self._connect()
         except BaseException:
             self.shutdown()
             raise
+
+    def _make_recorder(self, run_id: str) -> Node:
+        from rclpy.parameter import Parameter
+
+        from .recorder_node import RecorderNode
+        me = self.get_fully_qualified_name()
+        topics = [f"{me}/transitions", f"{me}/episodes", f"{me}/evaluations",
+                  f"/{self.p.sim_node.strip('/')}/episodes"]
+        if self.comcact:
+            topics.append(f"/{self.p.memory_node.strip('/')}/stats")
+        self.recorder = RecorderNode(context=self.context, parameter_overrides=[
+            Parameter("run_id", value=run_id), Parameter("algorithm", value=self.p.algorithm),
+            Parameter("output_dir", value=str(self.run_dir.path.parent)),
+            Parameter("storage", value=self.p.record_storage), Parameter("topics", value=topics)])
+        return self.recorder
 
     def _connect(self) -> None:
         p = self.p
@@ -345,6 +369,12 @@ class ComcactNode(Node):
         return np.array(array_to_numpy(r.observation), dtype=np.float32)
 
     def _end_episode(self, terminated: bool, truncated: bool) -> None:
+        if self.ep_parts:
+            t = self.ep_parts[0] if len(self.ep_parts) == 1 else Transitions.concatenate(self.ep_parts)
+            self.ep_parts = []
+            msg = transitions_to_batch(t)
+            msg.header.stamp = self.get_clock().now().to_msg()
+            self.transitions_pub.publish(msg)
         self.episodes += 1
         self.progress.episode(self.ep_return)
         msg = EpisodeSummary(run_id=self.run_id, env_id=self.p.env_id, source="train",
@@ -368,6 +398,7 @@ class ComcactNode(Node):
             with self.ptimers("learner"):
                 self.replay.add(t)
             self.stored += len(t)
+            self.ep_parts.append(t)
             return
         with self.ptimers("learner"):
             t.value_labels = self.learner.value_labels(t)
@@ -376,6 +407,7 @@ class ComcactNode(Node):
         with self.ptimers("memory"):
             call(self.c_store, req, self.p.service_timeout_s)
         self.stored += len(t)
+        self.ep_parts.append(t)
 
     def _flush(self) -> None:
         if self.pending:
@@ -646,19 +678,25 @@ class ComcactNode(Node):
         with self.ptimers("sim"):
             r = call(self.c_step_many, req, self.p.service_timeout_s)
         t = batch_to_transitions(r.transitions)
+        over = np.array([_episode_over(self.episode_rule, a, b) for a, b in zip(t.terminated, t.truncated)])
+        ends_before = np.concatenate([[0], np.cumsum(over)[:-1]]).astype(np.uint64)
         t = Transitions(states=np.array(t.states, np.float32), actions=np.array(t.actions, np.float32),
                         rewards=np.array(t.rewards, np.float32), next_states=np.array(t.next_states, np.float32),
                         terminated=np.array(t.terminated), truncated=np.array(t.truncated),
-                        episode_ids=np.full(len(t), self.episodes, np.uint64),
+                        episode_ids=self.episodes + ends_before,
                         steps=np.arange(self.step, self.step + len(t), dtype=np.uint64), run_id=self.run_id)
+        seg = 0
         for i in range(len(t)):
             self.ep_return += float(t.rewards[i])
             self.ep_len += 1
             self.step += 1
-            if _episode_over(self.episode_rule, t.terminated[i], t.truncated[i]):
+            if over[i]:
+                self._store(t.take(slice(seg, i + 1)))   # the episode's transitions go out with its summary
+                seg = i + 1
                 self._end_episode(bool(t.terminated[i]), bool(t.truncated[i]))
                 self.learner.reset_noise()
-        self._store(t)
+        if seg < len(t):
+            self._store(t.take(slice(seg, len(t))))
         return np.array(array_to_numpy(r.observation), dtype=np.float32)
 
     def _report_timers(self, elapsed: float, steps: int) -> None:
@@ -710,6 +748,11 @@ class ComcactNode(Node):
             pass
         if self.embedded is not None:
             self.embedded.destroy()
+        if self.recorder is not None:
+            try:
+                self.recorder.close()
+            finally:
+                self.recorder.destroy_node()
         eb = getattr(self, "eval_bridge", None)
         if eb is not None:
             eb.close()
