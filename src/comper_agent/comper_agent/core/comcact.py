@@ -155,12 +155,20 @@ class ComcactLearner:
         self.critic_opt.step()
 
         self.actor.train()
-        actor_loss = -self.critic(s, self.actor(s)).mean()
-        self.actor_opt.zero_grad(set_to_none=True)
-        actor_loss.backward()
+        # the actor step needs dQ/da only: no gradients for the critic's own weights (saves their
+        # backward pass; the critic is still differentiated with respect to its input)
+        critic_params = list(self.critic.parameters())
+        for p in critic_params:
+            p.requires_grad_(False)
+        try:
+            actor_loss = -self.critic(s, self.actor(s)).mean()
+            self.actor_opt.zero_grad(set_to_none=True)
+            actor_loss.backward()
+        finally:
+            for p in critic_params:
+                p.requires_grad_(True)
         self._clip(self.actor.parameters(), c.grad_clip)
         self.actor_opt.step()
-        self.critic_opt.zero_grad(set_to_none=True)   # drop the actor step's critic gradients
         self.actor.eval()
         self.critic.eval()
         self.updates += 1
