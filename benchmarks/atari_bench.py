@@ -1,0 +1,252 @@
+#!/usr/bin/env python3
+"""COMPER / COMPER-F / COMPER-M / DQN on Atari through the ROS node suite (thesis chapters 5 and 7).
+
+Each run is one ``ros2 run comper_agent comper_node`` subprocess (embedded bring-up, its own
+ROS_DOMAIN_ID so parallel runs never answer each other's services), at most ``--parallel`` (2) at a
+time. When all runs are done (or with ``--report-only`` on an existing --out folder) it writes:
+
+* ``<out>/table.md`` + ``<out>/table.json``: per game and variant, mean +- std across seeds of the
+  run's mean of the last 10 training episodes (3 for runs with fewer than 25 episodes) and of the
+  three terciles (mean of the last 5 (or 3) episodes at the end of each third of the episodes), the
+  thesis's Tables 23/25/30 layout, plus frames, episodes, wall time and steps/s;
+* ``<out>/curve_<game>.png``: training episode returns against frames, one line per variant
+  (mean over seeds on a common frame grid, band = min..max);
+* ``<out>/memory_<game>.png`` + ``memory.json``: identities, TM sets, RTM size and the mean size of
+  the sampled similar-transition sets over frames (comper_node's ``memory`` records).
+
+    python benchmarks/atari_bench.py --games Freeway --variants comper --seeds 0 --out benchmarks/out/atari
+    python benchmarks/atari_bench.py                       # 5 games x 4 variants x 3 seeds (long)
+    python benchmarks/atari_bench.py --out benchmarks/out/atari --report-only
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+GAMES = ["Freeway", "Asterix", "Seaquest", "SpaceInvaders", "BeamRider"]
+VARIANTS = ["comper", "comper_f", "comper_m", "dqn"]
+
+
+def _read_jsonl(path: Path, kind: str) -> list[dict]:
+    out = []
+    if not path.exists():
+        return out
+    for line in path.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if rec.get("kind") == kind:
+            out.append(rec)
+    return out
+
+
+def run_id(game: str, variant: str, seed: int) -> str:
+    return f"{variant}-{game}-s{seed}"
+
+
+def launch(args, game: str, variant: str, seed: int, domain: int) -> subprocess.Popen:
+    rid = run_id(game, variant, seed)
+    log = open(Path(args.out) / "logs" / f"{rid}.log", "wb")
+    cmd = ["ros2", "run", "comper_agent", "comper_node", "--ros-args",
+           "-p", f"algorithm:={variant}", "-p", f"env_id:=ALE/{game}-v5", "-p", f"seed:={seed}",
+           "-p", f"total_frames:={args.frames}", "-p", f"runs_root:={Path(args.out) / 'runs'}",
+           "-p", f"run_id:={rid}", "-p", f"progress_period_s:={args.progress_period}",
+           "-p", "tensorboard:=false"]
+    if args.frame_stack and variant != "dqn":
+        cmd += ["-p", f"frame_stack:={args.frame_stack}"]
+    if args.max_steps:
+        cmd += ["-p", f"max_steps:={args.max_steps}"]
+    for extra in args.ros_arg:
+        cmd += ["-p", extra]
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               OMP_NUM_THREADS="1")
+    print(f"[bench] start {rid} (ROS_DOMAIN_ID {domain}): {' '.join(cmd)}", flush=True)
+    p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    p.rid, p.t0, p.logf = rid, time.monotonic(), log
+    return p
+
+
+def progress_of(args, rid: str) -> str:
+    recs = _read_jsonl(Path(args.out) / "runs" / rid / "metrics.jsonl", "progress")
+    if not recs:
+        return "starting"
+    r = recs[-1]
+    return f"frames {r.get('frames', 0)}/{args.frames}, {r.get('steps_per_s') or 0:.1f} steps/s, episodes {r.get('episodes')}"
+
+
+def run_all(args) -> None:
+    out = Path(args.out)
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    todo = [(g, v, s) for g in args.games for v in args.variants for s in args.seeds
+            if args.force or not (out / "runs" / run_id(g, v, s) / "summary.json").exists()]
+    print(f"[bench] {len(todo)} runs to do, {args.parallel} at a time, {args.frames} frames each", flush=True)
+    base = random.SystemRandom().randint(20, 180)
+    running: list[subprocess.Popen] = []
+    done = 0
+    last_report = time.monotonic()
+    i = 0
+    while todo or running:
+        while todo and len(running) < args.parallel:
+            g, v, s = todo.pop(0)
+            running.append(launch(args, g, v, s, base + i % 40))
+            i += 1
+        time.sleep(2.0)
+        for p in list(running):
+            if p.poll() is not None:
+                running.remove(p)
+                p.logf.close()
+                done += 1
+                print(f"[bench] done {p.rid}: exit {p.returncode}, {time.monotonic() - p.t0:.0f} s "
+                      f"({done} finished, {len(todo)} queued)", flush=True)
+        if time.monotonic() - last_report > args.progress_period:
+            last_report = time.monotonic()
+            for p in running:
+                print(f"[bench]   {p.rid}: {progress_of(args, p.rid)} ({time.monotonic() - p.t0:.0f} s)", flush=True)
+
+
+def _ms(values: list[float]) -> str:
+    v = [x for x in values if x is not None and np.isfinite(x)]
+    if not v:
+        return "-"
+    return f"{np.mean(v):.1f} ({np.std(v):.1f})" if len(v) > 1 else f"{v[0]:.1f}"
+
+
+def report(args) -> None:
+    out = Path(args.out)
+    rows = {}
+    curves: dict = {}
+    memory: dict = {}
+    for sd in sorted((out / "runs").glob("*/summary.json")):
+        s = json.loads(sd.read_text())
+        game = s["env_id"].split("/")[-1].replace("-v5", "")
+        key = (game, s["algorithm"])
+        rows.setdefault(key, []).append(s)
+        eps = _read_jsonl(sd.parent / "metrics.jsonl", "episode")
+        curves.setdefault(game, {}).setdefault(s["algorithm"], []).append(
+            ([e["frames"] for e in eps], [e["ret"] for e in eps]))
+        mem = _read_jsonl(sd.parent / "metrics.jsonl", "memory")
+        memory.setdefault(game, {}).setdefault(s["algorithm"], []).append(mem)
+    table = []
+    lines = ["| game | variant | seeds | last 10 (3*) | tercile 1 | tercile 2 | tercile 3 | episodes | frames | "
+             "wall (min) | steps/s | complete |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for (game, alg), ss in sorted(rows.items(), key=lambda kv: (kv[0][0], VARIANTS.index(kv[0][1])
+                                                                  if kv[0][1] in VARIANTS else 9)):
+        pr = [s["protocol"] for s in ss]
+        star = "*" if any(p["last_k"] == 3 for p in pr) else ""
+        entry = {"game": game, "variant": alg, "seeds": [s["seed"] for s in ss],
+                 "last": [p["last_mean"] for p in pr], "last_k": [p["last_k"] for p in pr],
+                 "terciles": [[t["mean"] for t in p["terciles"]] for p in pr],
+                 "episodes": [p["episodes"] for p in pr], "frames": [s["frames"] for s in ss],
+                 "wall_s": [s["wall_time_s"] for s in ss],
+                 "steps_per_s": [s["steps"] / s["wall_time_s"] if s["wall_time_s"] else None for s in ss],
+                 "complete": [s["complete"] for s in ss]}
+        table.append(entry)
+        terc = list(zip(*entry["terciles"])) if entry["terciles"] else [[], [], []]
+        lines.append(f"| {game} | {alg} | {len(ss)} | {_ms(entry['last'])}{star} | {_ms(list(terc[0]))} | "
+                     f"{_ms(list(terc[1]))} | {_ms(list(terc[2]))} | {_ms(entry['episodes'])} | "
+                     f"{_ms(entry['frames'])} | {_ms([w / 60 for w in entry['wall_s']])} | "
+                     f"{_ms(entry['steps_per_s'])} | {sum(entry['complete'])}/{len(ss)} |")
+    lines.append("")
+    lines.append("mean (std across seeds); * = a run with fewer than 25 episodes reports its last 3 episodes "
+                 "(terciles: last 3 instead of 5).")
+    (out / "table.md").write_text("\n".join(lines) + "\n")
+    (out / "table.json").write_text(json.dumps(table, indent=1))
+    (out / "memory.json").write_text(json.dumps(memory, indent=1))
+    print("\n".join(lines))
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:
+        print(f"[bench] no figures: matplotlib not importable ({exc})")
+        return
+    for game, by_alg in curves.items():
+        fig, ax = plt.subplots(figsize=(7, 4))
+        grid = np.linspace(0, args.frames, 101)
+        for alg, runs in by_alg.items():
+            ys = []
+            for fr, ret in runs:
+                if len(fr) >= 1:
+                    ys.append(np.interp(grid, fr, ret, left=np.nan, right=ret[-1]))
+            if not ys:
+                continue
+            y = np.array(ys)
+            ax.plot(grid, np.nanmean(y, 0), label=f"{alg} ({len(ys)} seeds)")
+            if len(ys) > 1:
+                ax.fill_between(grid, np.nanmin(y, 0), np.nanmax(y, 0), alpha=0.2)
+            for fr, ret in runs:
+                ax.scatter(fr, ret, s=6, alpha=0.5)
+        ax.set_xlabel("frames (skipped ones counted)")
+        ax.set_ylabel("training episode return")
+        ax.set_title(f"{game}: training episodes")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / f"curve_{game}.png", dpi=110)
+        plt.close(fig)
+    for game, by_alg in memory.items():
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        for alg, runs in by_alg.items():
+            for k, mem in enumerate(runs):
+                if not mem or "identities" not in mem[0]:
+                    continue
+                fr = [m["frames"] for m in mem]
+                lab = f"{alg}" if k == 0 else None
+                l1, = axes[0].plot(fr, [m["rtm_size"] for m in mem], label=f"{lab} RTM" if lab else None)
+                axes[0].plot(fr, [m["identities"] for m in mem], "--", color=l1.get_color(),
+                             label=f"{lab} identities" if lab else None)
+                axes[0].plot(fr, [m["tm_sets"] for m in mem], ":", color=l1.get_color(),
+                             label=f"{lab} TM sets" if lab else None)
+                axes[1].plot(fr, [m.get("sampled_set_size_mean", np.nan) for m in mem], color=l1.get_color(),
+                             label=f"{lab} mean" if lab else None)
+                axes[1].plot(fr, [m.get("sampled_set_size_p90", np.nan) for m in mem], "--", color=l1.get_color(),
+                             label=f"{lab} p90" if lab else None)
+        axes[0].set_xlabel("frames")
+        axes[0].set_ylabel("entries")
+        axes[0].set_title(f"{game}: memory sizes")
+        axes[0].legend(fontsize=7)
+        axes[1].set_xlabel("frames")
+        axes[1].set_ylabel("transitions per similar set")
+        axes[1].set_title("sizes of the sampled similar-transition sets")
+        axes[1].legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / f"memory_{game}.png", dpi=110)
+        plt.close(fig)
+    print(f"[bench] wrote {out / 'table.md'}, table.json, memory.json and figures in {out}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap.add_argument("--games", nargs="+", default=GAMES, help="ALE game names (ALE/<Game>-v5); default: %(default)s")
+    ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=VARIANTS, help="default: all four")
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="default: %(default)s")
+    ap.add_argument("--frames", type=int, default=100_000, help="frame budget per run (thesis: 100,000)")
+    ap.add_argument("--max-steps", type=int, default=0, help="also stop each run after this many agent steps")
+    ap.add_argument("--frame-stack", type=int, default=0, help="frames per observation for the COMPER variants "
+                    "(0 = the node's default, 1); dqn always uses its default (4)")
+    ap.add_argument("--parallel", type=int, default=2, help="runs at a time (default 2: a 2-core machine)")
+    ap.add_argument("--out", default="benchmarks/out/atari", help="output folder (runs/, logs/, tables, figures)")
+    ap.add_argument("--progress-period", type=float, default=60.0, help="seconds between progress lines")
+    ap.add_argument("--ros-arg", action="append", default=[], metavar="NAME:=VALUE",
+                    help="extra -p parameter for every run (repeatable)")
+    ap.add_argument("--force", action="store_true", help="re-run runs whose summary.json exists")
+    ap.add_argument("--report-only", action="store_true", help="only build the tables and figures")
+    args = ap.parse_args(argv)
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    if not args.report_only:
+        run_all(args)
+    report(args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
