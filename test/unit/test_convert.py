@@ -56,3 +56,34 @@ def test_validation_names_the_problem(mutate, match):
     mutate(t)
     with pytest.raises(TransitionError, match=match):
         t.validate()
+
+
+def test_declare_config_accepts_integers_for_floats_and_refuses_bad_values():
+    """`-p delta:=0` must work for a float parameter; out-of-range values are refused clearly."""
+    from dataclasses import dataclass
+
+    import rclpy
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from comper_msgs_py.params import ConfigError, param
+    from comper_msgs_py.ros_params import declare_config
+
+    @dataclass(frozen=True)
+    class Cfg:
+        delta: float = param(1e-4, "threshold", minimum=0.0)
+        mode: str = param("a", "mode", choices=("a", "b"))
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = Node("cfg_ok", context=ctx, parameter_overrides=[Parameter("delta", value=0)])
+        cfg = declare_config(node, Cfg)
+        assert cfg.delta == 0.0 and isinstance(cfg.delta, float) and cfg.mode == "a"
+        desc = node.describe_parameter("delta")
+        assert "threshold" in desc.description and desc.read_only
+        bad = Node("cfg_bad", context=ctx, parameter_overrides=[Parameter("mode", value="c")])
+        with pytest.raises(ConfigError, match="not one of"):
+            declare_config(bad, Cfg)
+    finally:
+        ctx.try_shutdown()

@@ -38,7 +38,10 @@ def declare_config(node, cls, *, prefix: str = "", overrides: dict | None = None
         if overrides and f.name in overrides:
             default = overrides[f.name]
         m = f.metadata
-        desc = ParameterDescriptor(description=describe(f), type=_ptype(typ), read_only=True)
+        # floats accept integers too (`-p delta:=0`, `-p lease_timeout_s:=60`): rclpy would refuse an
+        # INTEGER for a DOUBLE parameter; config_from_dict coerces and range-checks the value below
+        desc = ParameterDescriptor(description=describe(f), type=_ptype(typ), read_only=True,
+                                   dynamic_typing=typ is float)
         if m.get("choices"):
             desc.additional_constraints = "one of: " + ", ".join(map(str, m["choices"]))
         if typ is int and (m.get("minimum") is not None or m.get("maximum") is not None):
