@@ -1,0 +1,392 @@
+"""memory_node: the compact memory as a ROS 2 node (thin: translation between messages and the core).
+
+    ros2 run comper_memory memory_node
+    ros2 run comper_memory memory_node --ros-args -p storage_dir:=/tmp/mem -p delta:=1e-4
+    ros2 run comper_memory memory_node --ros-args --params-file src/comper_memory/config/memory.yaml
+
+Services (private, relative to the node, e.g. ``/memory_node/store``):
+
+=================  ===========================  ============================================
+``~/store``        comper_msgs/srv/Store        store a TransitionBatch with value labels
+``~/sample``       comper_msgs/srv/Sample       k distinct entries from RTM (default) or TM
+``~/reduce``       comper_msgs/srv/Reduce       one-call reduction, newest label = prediction
+``~/reduce_begin`` comper_msgs/srv/ReduceBegin  phase 1 of a QT-driven reduction (lease)
+``~/reduce_commit`` comper_msgs/srv/ReduceCommit phase 2: upsert RTM with QT's predictions
+``~/get_stats``    comper_msgs/srv/GetStats     the current MemoryStats
+``~/snapshot``     comper_msgs/srv/Snapshot     save / restore a verified snapshot
+=================  ===========================  ============================================
+
+Topic ``~/stats`` (comper_msgs/msg/MemoryStats), every ``stats_period_s``, best effort, keep last 1.
+Parameters: every field of :class:`comper_memory.core.MemoryConfig` (read-only, declared with
+``declare_config``) plus the node-level ``key_size``, ``stats_period_s``, ``sample_seed``,
+``faiss_threads`` and ``executor_threads``.
+
+A refused request answers ``success=false`` with the reason in ``message`` and changes nothing
+(the core validates a whole request before it touches any state); the node keeps serving.
+Several learners may call at once: the services are in one reentrant callback group, so a
+multi-threaded executor (``executor_threads`` >= 2, or an embedding process's) may run them
+concurrently; the core serialises them with its own lock. ``main()`` uses a single-threaded
+executor by default (``executor_threads`` 1): with one core lock it serves the same requests in
+the same order at a third of rclpy's multi-threaded CPU cost per call; the request queue
+(``SERVICE_QOS``, depth 100) holds the other learners' calls meanwhile.
+All the memory logic lives in :mod:`comper_memory.core`.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import threading
+import time
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from comper_msgs.msg import MemoryStats
+from comper_msgs.srv import GetStats, Reduce, ReduceBegin, ReduceCommit, Sample, Snapshot, Store
+from comper_msgs_py.arrays import TransitionError
+from comper_msgs_py.convert import batch_to_transitions, numpy_to_seq, seq_to_numpy, transitions_to_batch
+from comper_msgs_py.params import ConfigError
+from comper_msgs_py.ros_params import declare_config
+
+from .core import CompactMemory, MemoryConfig, MemoryInputError, SnapshotError
+
+__all__ = ["MemoryNode", "main", "STATS_QOS", "SERVICE_QOS", "SOURCES", "stats_to_msg"]
+
+# A periodic gauge: only the newest value matters (architecture.md, QoS table).
+STATS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                       reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+
+# Services: reliable like the default, but a deeper request queue (default keep_last 10), so a
+# burst from many learners waits while a long call (reduce, snapshot) runs instead of being dropped.
+SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                         reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+
+SOURCES = {Sample.Request.SOURCE_RTM: "rtm", Sample.Request.SOURCE_TM: "tm"}
+
+# Refusals: bad input, answered with success=false and the core's message (nothing changed).
+_REFUSED = (MemoryInputError, TransitionError, SnapshotError, ConfigError)
+
+
+def stats_to_msg(stats: dict, msg: MemoryStats | None = None) -> MemoryStats:
+    """CompactMemory.stats() -> comper_msgs/MemoryStats (header left to the caller)."""
+    msg = msg if msg is not None else MemoryStats()
+    msg.key_size = int(stats["key_size"])
+    msg.delta = float(stats["delta"])
+    for name in ("identities", "tm_sets", "rtm_size", "transitions_stored", "similarity_hits",
+                 "reductions", "sets_reduced", "evictions", "bytes_used", "wal_sequence"):
+        setattr(msg, name, int(stats[name]))
+    msg.hit_rate = float(stats["hit_rate"])
+    msg.compaction_ratio = float(stats["compaction_ratio"])
+    return msg
+
+
+class _Refused(Exception):
+    """A request the node itself refuses before it reaches the core."""
+
+
+class MemoryNode(Node):
+    """The compact-memory node. ``node_kwargs`` go to rclpy's Node (context, parameter_overrides,
+    namespace, ...), so an agent can embed it in its own process (``bringup``).
+
+    Raises at construction when a parameter is bad or the storage directory cannot be opened
+    (e.g. a corrupted snapshot in ``storage_dir``).
+    """
+
+    def __init__(self, node_name: str = "memory_node", **node_kwargs):
+        super().__init__(node_name, **node_kwargs)
+        try:
+            self.config: MemoryConfig = declare_config(self, MemoryConfig).validate()
+            self.key_size = int(self.declare_parameter(
+                "key_size", 0, ParameterDescriptor(
+                    description="length of the transition key [s, a, r, s'] (2*obs + action + 1); "
+                                "0 = learnt from the first store", read_only=True,
+                    integer_range=[IntegerRange(from_value=0, to_value=2**31 - 1, step=0)])).value)
+            self.stats_period_s = float(self.declare_parameter(
+                "stats_period_s", 1.0, ParameterDescriptor(
+                    description="period of the ~/stats topic in seconds (0 = not published)",
+                    read_only=True,
+                    floating_point_range=[FloatingPointRange(from_value=0.0, to_value=3600.0, step=0.0)])).value)
+            self.sample_seed = int(self.declare_parameter(
+                "sample_seed", -1, ParameterDescriptor(
+                    description="seed of the node's own sampling generator (used when a Sample "
+                                "request has seed < 0); -1 = from OS entropy", read_only=True)).value)
+            self.faiss_threads = int(self.declare_parameter(
+                "faiss_threads", 1, ParameterDescriptor(
+                    description="OpenMP threads faiss may use in this process (0 = faiss's default, all "
+                                "cores). 1 is fastest for store batches of tens to thousands: several "
+                                "threads per small search cost more than they save", read_only=True,
+                    integer_range=[IntegerRange(from_value=0, to_value=1024, step=0)])).value)
+            if self.faiss_threads > 0:
+                import faiss
+                faiss.omp_set_num_threads(self.faiss_threads)
+            self.executor_threads = int(self.declare_parameter(
+                "executor_threads", 1, ParameterDescriptor(
+                    description="executor main() spins this node with: 1 = SingleThreadedExecutor "
+                                "(default: requests served one at a time, which the core's single lock "
+                                "does anyway; ~3x less CPU per call than rclpy's MultiThreadedExecutor), "
+                                ">= 2 = MultiThreadedExecutor with that many threads (requests taken from "
+                                "DDS at once). Ignored when the node is embedded in another process",
+                    read_only=True, integer_range=[IntegerRange(from_value=1, to_value=64, step=0)])).value)
+            self.memory = CompactMemory(self.config, self.key_size or None)
+        except Exception:
+            super().destroy_node()
+            raise
+        self._rng = np.random.default_rng(None if self.sample_seed < 0 else self.sample_seed)
+        self._closed = False
+        self._close_lock = threading.Lock()
+        self._warn_lock = threading.Lock()
+        self._warn_last = -1e9
+        self._warn_suppressed = 0
+        self._group = ReentrantCallbackGroup()
+        g = self._group
+        self._stats_pub = self.create_publisher(MemoryStats, "~/stats", STATS_QOS, callback_group=g)
+        for srv_type, name, cb in ((Store, "~/store", self._on_store), (Sample, "~/sample", self._on_sample),
+                                   (Reduce, "~/reduce", self._on_reduce),
+                                   (ReduceBegin, "~/reduce_begin", self._on_reduce_begin),
+                                   (ReduceCommit, "~/reduce_commit", self._on_reduce_commit),
+                                   (GetStats, "~/get_stats", self._on_get_stats),
+                                   (Snapshot, "~/snapshot", self._on_snapshot)):
+            self.create_service(srv_type, name, cb, qos_profile=SERVICE_QOS, callback_group=g)
+        self._timer = (self.create_timer(self.stats_period_s, self.publish_stats, callback_group=g)
+                       if self.stats_period_s > 0 else None)
+        c, s = self.config, self.memory.stats()
+        storage = (f"storage {os.path.abspath(c.storage_dir)} (durability {c.durability}, snapshot "
+                   f"every {c.snapshot_every} ops; recovered {s['identities']} identities, "
+                   f"wal_sequence {s['wal_sequence']})" if c.storage_dir else "in memory only (no storage_dir)")
+        self.get_logger().info(
+            f"serving: delta {c.delta:g}, key_size {self.memory.key_size or 'from first store'}, "
+            f"rtm_capacity {c.rtm_capacity}, tm_capacity {c.tm_capacity}, history_length "
+            f"{c.history_length}, reduce_batch {c.reduce_batch}, max_store_batch {c.max_store_batch}, "
+            f"max_sample_batch {c.max_sample_batch}, lease_timeout_s {c.lease_timeout_s:g}, "
+            f"stats every {self.stats_period_s:g} s, executor_threads {self.executor_threads}, faiss_threads {self.faiss_threads or 'default'}; {storage}")
+
+    # --- helpers ------------------------------------------------------------------------------
+    def _refuse(self, response, what: str, exc: Exception):
+        if isinstance(exc, (_Refused,) + _REFUSED):
+            response.message = str(exc)
+            self._warn(f"{what} refused: {exc}", error=False)
+        else:  # a bug or an I/O failure: report it, keep serving
+            response.message = f"internal error: {type(exc).__name__}: {exc}"
+            self._warn(f"{what} failed: {type(exc).__name__}: {exc}", error=True)
+        response.success = False
+        return response
+
+    def _warn(self, text: str, *, error: bool) -> None:
+        """At most one line per second, however many learners send bad requests; the next line
+        says how many were not logged."""
+        now = time.monotonic()
+        with self._warn_lock:
+            if now - self._warn_last < 1.0:
+                self._warn_suppressed += 1
+                return
+            self._warn_last, skipped, self._warn_suppressed = now, self._warn_suppressed, 0
+        if skipped:
+            text += f" ({skipped} more refused or failed requests not logged)"
+        (self.get_logger().error if error else self.get_logger().warning)(text)
+
+    @contextlib.contextmanager
+    def _open(self):
+        """Held around every state-changing core call: after close() (final WAL flush) nothing
+        more is acknowledged. The core serialises these calls anyway, so this costs no concurrency."""
+        with self._close_lock:
+            if self._closed:
+                raise _Refused("the memory node is shutting down")
+            yield
+
+    def _stats(self) -> dict:
+        s = self.memory.stats()
+        if not self.config.storage_dir:
+            s["wal_sequence"] = 0  # MemoryStats: 0 when not persistent
+        return s
+
+    def publish_stats(self) -> None:
+        if self._closed:
+            return
+        msg = stats_to_msg(self._stats())
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._stats_pub.publish(msg)
+
+    # --- services -----------------------------------------------------------------------------
+    def _on_store(self, request: Store.Request, response: Store.Response):
+        try:
+            n = len(request.batch.rewards)
+            if n == 0:
+                raise _Refused("store: empty batch (0 transitions)")
+            if n > self.config.max_store_batch:
+                raise _Refused(f"store: batch of {n} exceeds max_store_batch ({self.config.max_store_batch})")
+            t = batch_to_transitions(request.batch)
+            with self._open():
+                result = self.memory.store(t)
+        except Exception as exc:
+            return self._refuse(response, "store", exc)
+        response.success = True
+        response.stored = n
+        response.new_identities = int(result.new_identities)
+        response.identity_ids = numpy_to_seq(result.identity_ids, np.uint64)
+        response.wal_sequence = int(result.wal_sequence) if self.config.storage_dir else 0
+        return response
+
+    def _on_sample(self, request: Sample.Request, response: Sample.Response):
+        try:
+            source = SOURCES.get(request.source)
+            if source is None:
+                raise _Refused(f"sample: unknown source {request.source} (SOURCE_RTM=0, SOURCE_TM=1)")
+            if request.seed >= 0:
+                result = self.memory.sample(request.batch_size, source, seed=int(request.seed))
+            else:  # the core holds its lock while it draws, so sharing one generator is safe
+                result = self.memory.sample(request.batch_size, source, rng=self._rng)
+        except Exception as exc:
+            return self._refuse(response, "sample", exc)
+        transitions_to_batch(result.transitions, response.batch)
+        response.identity_ids = numpy_to_seq(result.identity_ids, np.uint64)
+        response.counts = numpy_to_seq(result.counts, np.uint32)
+        response.success = True
+        return response
+
+    def _on_reduce(self, request: Reduce.Request, response: Reduce.Response):
+        t0 = time.perf_counter()
+        try:
+            with self._open():
+                result = self.memory.reduce(max_sets=request.max_sets or None)
+        except Exception as exc:
+            return self._refuse(response, "reduce", exc)
+        response.success = True
+        response.sets_reduced = int(result.upserted)
+        response.rtm_size = int(self.memory.rtm_size)
+        response.qt_version = 0
+        response.qt_loss = 0.0
+        response.duration_s = time.perf_counter() - t0
+        if result.skipped:
+            response.message = f"{result.skipped} leased identities were evicted meanwhile"
+        return response
+
+    def _on_reduce_begin(self, request: ReduceBegin.Request, response: ReduceBegin.Response):
+        try:
+            with self._open():
+                lease = self.memory.begin_reduce(request.max_sets or None)
+        except Exception as exc:
+            return self._refuse(response, "reduce_begin", exc)
+        sets = response.sets
+        sets.reduction_id = int(lease.reduction_id)
+        sets.identity_ids = numpy_to_seq(lease.identity_ids, np.uint64)
+        transitions_to_batch(lease.representatives, sets.representatives)
+        sets.label_history = numpy_to_seq(lease.label_history, np.float32)
+        sets.history_lengths = numpy_to_seq(lease.history_lengths, np.uint32)
+        sets.counts = numpy_to_seq(lease.counts, np.uint32)
+        response.success = True
+        return response
+
+    def _on_reduce_commit(self, request: ReduceCommit.Request, response: ReduceCommit.Response):
+        try:
+            ids = seq_to_numpy(request.identity_ids, np.uint64)
+            if ids.size and int(ids.max()) >= 2**63:
+                raise _Refused("reduce_commit: identity_ids out of range")
+            with self._open():
+                result = self.memory.commit_reduce(int(request.reduction_id), ids.astype(np.int64),
+                                                   seq_to_numpy(request.predictions, np.float32))
+        except Exception as exc:
+            return self._refuse(response, "reduce_commit", exc)
+        response.success = True
+        response.committed = int(result.upserted)
+        response.rtm_size = int(self.memory.rtm_size)
+        if result.skipped:
+            response.message = f"{result.skipped} leased identities were evicted meanwhile"
+        return response
+
+    def _on_get_stats(self, request: GetStats.Request, response: GetStats.Response):
+        stats_to_msg(self._stats(), response.stats)
+        response.stats.header.stamp = self.get_clock().now().to_msg()
+        return response
+
+    def _default_snapshot_path(self) -> str:
+        if not self.config.storage_dir:
+            raise _Refused("snapshot: empty path and the node has no storage_dir; give a path")
+        return os.path.join(os.path.abspath(self.config.storage_dir), "snapshot")
+
+    def _snapshot(self, request: Snapshot.Request) -> tuple[str, str]:
+        if request.op == Snapshot.Request.OP_SAVE:
+            if request.path:
+                path = os.path.abspath(request.path)
+                self.memory.save_snapshot(path)
+            else:  # snapshot into storage_dir and rotate the WAL
+                path = self._default_snapshot_path()
+                self.memory.checkpoint()
+            return path, "saved"
+        if request.op == Snapshot.Request.OP_RESTORE:
+            path = os.path.abspath(request.path) if request.path else self._default_snapshot_path()
+            if not os.path.isdir(path):
+                raise _Refused(f"snapshot: {path!r} is not a snapshot directory")
+            self.memory.load_snapshot(path)
+            return path, "restored"
+        raise _Refused(f"snapshot: unknown op {request.op} (OP_SAVE=0, OP_RESTORE=1)")
+
+    def _on_snapshot(self, request: Snapshot.Request, response: Snapshot.Response):
+        try:
+            with self._open():
+                path, what = self._snapshot(request)
+        except Exception as exc:
+            return self._refuse(response, "snapshot", exc)
+        response.success = True
+        response.path = path
+        response.wal_sequence = int(self._stats()["wal_sequence"])
+        response.message = f"{what} {path}"
+        self.get_logger().info(f"snapshot {what}: {path} (wal_sequence {response.wal_sequence})")
+        return response
+
+    # --- shutdown -----------------------------------------------------------------------------
+    def close(self) -> None:
+        """Flush and close the write-ahead log (idempotent); the node stops answering stores."""
+        with self._close_lock:
+            if self._closed:
+                return
+            self._closed = True
+            memory = getattr(self, "memory", None)
+            if memory is not None:
+                memory.close()
+
+    def destroy_node(self):
+        if hasattr(self, "memory"):
+            self.close()
+        return super().destroy_node()
+
+
+def main(args=None) -> int:
+    """Entry point of ``ros2 run comper_memory memory_node``: 0 on Ctrl-C / SIGTERM, 1 when it
+    cannot start (bad parameter, unreadable storage_dir)."""
+    rclpy.init(args=args)
+    node = None
+    executor = None
+    try:
+        try:
+            node = MemoryNode()
+        except Exception as exc:  # one readable line, no traceback
+            rclpy.logging.get_logger("memory_node").error(f"cannot start: {type(exc).__name__}: {exc}")
+            return 1
+        executor = (MultiThreadedExecutor(num_threads=node.executor_threads) if node.executor_threads > 1
+                    else SingleThreadedExecutor())
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if executor is not None:
+            executor.shutdown(timeout_sec=5.0)
+        if node is not None:
+            node.close()  # final flush of the WAL
+            persistent = bool(node.config.storage_dir)
+            node.destroy_node()
+            # after Ctrl-C the context is already shut down: log without the node (no rosout)
+            rclpy.logging.get_logger("memory_node.main").info(
+                "stopped" + (" (write-ahead log flushed and closed)" if persistent else ""))
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
