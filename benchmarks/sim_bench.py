@@ -64,8 +64,6 @@ def bench_direct(env_id, actions, seed):
         env = gym.make(env_id, frameskip=5, repeat_action_probability=0.25, full_action_space=True)
         acts = actions.astype(np.int64)
     else:
-        from comper_sim.core.envs import _ensure_imageio
-        _ensure_imageio()
         env = gym.make(env_id)
         acts = actions
     env.reset(seed=seed)
