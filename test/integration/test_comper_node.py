@@ -7,6 +7,7 @@
   count, frames and episode list.
 * comper_f, comper_m, dqn in parallel (distinct node names): each runs 300 steps and uses the
   sampling source / target / reducer it should (summary.json, checkpoint contents, phase timers).
+* record:=true (dqn, 300 steps): the in-process recorder's bag holds every episode and its transitions.
 """
 import json
 import os
@@ -140,3 +141,24 @@ def test_variants_use_their_sampling_source_and_target(launch, tmp_path):
     assert "q_target" in st["dqn"]["learner"] and "qt_trainer" not in st["dqn"]
     assert "memory" not in ph["dqn"] and "qt" not in ph["dqn"] and s["dqn"]["updates"] >= 45
     assert s["dqn"]["memory"]["replay_size"] == 300
+
+
+def test_record_parameter_bags_the_run_with_every_episode_and_its_transitions(launch, tmp_path):
+    """record:=true (shared with comcact_node): the in-process recorder bags ~/transitions and
+    ~/episodes; the bag's returns equal the logged ones and every episode's transitions are in it
+    (dqn: the cheapest variant; its transitions carry no labels)."""
+    from comper_agent import offline
+
+    tag = f"r{os.getpid()}"
+    proc = launch("comper_agent", "comper_node",
+                  *_args(tmp_path, "rec", tag, "-p", "algorithm:=dqn", "-p", "max_steps:=300",
+                         "-p", "max_episode_frames:=500", "-p", "learning_starts:=100", "-p", "replay_size:=2000",
+                         "-p", "record:=true", "-p", "transport_probe_calls:=0"), name="rec")
+    assert _wait(proc, 170) == 0, proc.log()[-4000:]
+    logged = [(r["episode"], r["ret"], r["length"])
+              for r in run_io.MetricsLog.read(tmp_path / "rec" / "metrics.jsonl", "episode")]
+    assert len(logged) == 3
+    (run,) = offline.read_runs([tmp_path / "rec"]).values()
+    assert [(e.episode_id, e.episode_return, e.length) for e in run.train_episodes()] == logged
+    check = offline.cross_check(run)
+    assert check["checked"] == 3 and not check["mismatches"] and check["missing"] == 0

@@ -1,0 +1,617 @@
+"""agent_node: what the learner nodes (comcact_node, comper_node) share.
+
+* :class:`AgentRunConfig` - the run set-up parameters every learner node declares (bring-up,
+  outputs, recording, node names, timeouts); each node subclasses it with its algorithm's own
+  parameters (:class:`comper_agent.comcact_node.ComcactNodeConfig`,
+  :class:`comper_agent.comper_node.ComperNodeConfig`).
+* :class:`AgentNode` - the learner node's machinery: parameters (``declare_config``), the run
+  directory and resume, the embedded bring-up (``bringup:=embedded``) with an optional in-process
+  recorder (``record:=true``), service clients, the QTModel subscription, ``~/episodes`` and
+  ``~/transitions`` per training episode, checkpoints, the run loop's start / stop / final save,
+  the time split and shutdown. A subclass supplies the algorithm: ``_setup_learner``,
+  ``_before_loop``, ``_loop``, ``_start_line``, ``_progress_line``, checkpoint contents.
+* :func:`run_main` - an entry point's signal handling: the first Ctrl-C / SIGTERM finishes the
+  current step, saves a final checkpoint and exits 0; a second one aborts (130); a node that cannot
+  start logs one ``cannot start: ...`` line and exits 1. ``--help`` lists the parameters.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+
+from comper_msgs.msg import EpisodeSummary, TransitionBatch
+from comper_msgs.msg import QTModel as QTModelMsg
+from comper_msgs.srv import EnvInfo, GetStats, Reduce, Reset, Sample, Step, Store
+from comper_msgs_py.arrays import Transitions
+from comper_msgs_py.convert import array_to_numpy, numpy_to_array, transitions_to_batch
+from comper_msgs_py.params import config_to_dict, describe, param, spec_of
+from comper_msgs_py.ros_params import declare_config
+
+from . import run_io
+from .bringup import START_HINTS, ServiceError, Spinner, call, make_embedded_nodes, wait_for_services
+from .qt_trainer_node import QT_MODEL_QOS, msg_to_qt
+
+__all__ = ["AgentNode", "AgentRunConfig", "run_main", "redefault", "episode_over", "SUMMARY_QOS",
+           "EPISODE_END_RULES"]
+
+#: QoS of ~/episodes, ~/evaluations, ~/transitions (the recording contract, docs/recording.md)
+SUMMARY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                         reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+
+EPISODE_END_RULES = ("standard", "truncation_only", "termination_only")
+
+
+def episode_over(rule: str, terminated: bool, truncated: bool) -> bool:
+    """Whether a step ends the episode under the sim's episode end rule (method.md 6.3)."""
+    if rule == "truncation_only":
+        return bool(truncated)
+    if rule == "termination_only":
+        return bool(terminated)
+    return bool(terminated or truncated)
+
+
+def redefault(cls, name: str, default):
+    """A config field of `cls` (description, thesis, range) with another default, for a subclass:
+    ``progress_period_s: float = redefault(AgentRunConfig, "progress_period_s", 10.0)``."""
+    (f,) = [f for f in dataclasses.fields(cls) if f.name == name]
+    return dataclasses.field(default=default, metadata=f.metadata)
+
+
+@dataclass(frozen=True)
+class AgentRunConfig:
+    """Run set-up shared by the learner nodes; a node's config subclasses it with its algorithm's
+    parameters (and redefines algorithm, env_id and the defaults that differ)."""
+
+    algorithm: str = param("", "learning algorithm (each node lists its own)")
+    bringup: str = param(
+        "embedded", "embedded: build the sim, memory and QT trainer nodes in this process; external: use "
+        "nodes started separately, named by sim_node, memory_node, qt_trainer_node",
+        choices=("embedded", "external"))
+    env_id: str = param("", "gymnasium task (embedded: given to the sim node; external: must match the "
+                            "running sim node)")
+    episode_end: str = param(
+        "standard", "embedded sim node's episode end rule (method.md 6.3; only terminated masks the "
+        "bootstrap; an ALE game over always ends the episode). External: the sim's rule is used",
+        choices=EPISODE_END_RULES)
+    runs_root: str = param("runs", "folder holding the run directories")
+    run_id: str = param("", "run directory name; '' = <algorithm>-<env>-s<seed>-<timestamp>")
+    resume: str = param(
+        "", "checkpoint file or run directory to continue from ('' = fresh run). The run continues in "
+        "the checkpoint's run directory with its step count; the memory / replay contents are not in "
+        "the checkpoint and refill from the resumed step, which starts a new episode")
+    keep_checkpoints: int = param(3, "step_<N>.pt files kept besides latest.pt (0 = keep all)", minimum=0)
+    progress_period_s: float = param(5.0, "seconds between console progress lines", minimum=0.0)
+    tensorboard: bool = param(True, "write TensorBoard scalars to <run dir>/tb")
+    record: bool = param(
+        False, "record this run's topics (transitions, episodes, evaluations, memory stats, sim episodes) "
+        "into a rosbag2 bag in <run dir>/bag with an in-process recorder_node (docs/recording.md)")
+    record_storage: str = param("mcap", "bag storage when record is on", choices=("mcap", "sqlite3"))
+    publish_transitions: bool = param(
+        True, "publish each finished training episode's transitions (with the labels stored) on "
+        "~/transitions, before its ~/episodes summary, while someone subscribes (record:=true does)")
+    qt_wait_s: float = param(2.0, "after a reduction, seconds to wait for the QTModel of that version to "
+                                  "arrive (variants with a QT target)", minimum=0.0)
+    sim_node: str = param("sim_node", "name of the simulation node")
+    memory_node: str = param("memory_node", "name of the memory node (not used by the baselines)")
+    qt_trainer_node: str = param("qt_trainer_node", "name of the QT trainer node (variants that train QT)")
+    service_timeout_s: float = param(120.0, "seconds to wait for any one service answer", minimum=0.0)
+    startup_timeout_s: float = param(30.0, "seconds to wait for the nodes' services at start", minimum=0.0)
+    transport_probe_calls: int = param(
+        200, "at the end, this many small service calls measure the ROS round trip for the time split "
+        "(0 = skip)", minimum=0)
+
+
+class AgentNode(Node):
+    """A learner node. Construction declares parameters, prepares the run directory and brings up the
+    other nodes; ``run()`` trains (main thread) while a background executor serves ROS.
+
+    Subclasses set CONFIG (their AgentRunConfig subclass), LEARNER_CONFIGS (algorithm -> learner
+    hyper-parameter class; ``variant`` is set from ``algorithm``), OBS_DTYPE, CSV_COLUMNS, and
+    implement the hooks below. ``_configure`` sets ``uses_memory``, ``uses_qt`` and ``reducer``
+    (qt_trainer, memory or none), which decide the embedded nodes, clients and QT subscription.
+    CONFIG also defines ``reduce_batch`` and ``qt_epochs`` (their defaults and thesis values differ
+    per algorithm), used here for the embedded QT trainer and the reduce calls."""
+
+    CONFIG: type = AgentRunConfig
+    LEARNER_CONFIGS: dict = {}
+    LEARNER_OVERRIDES = {"num_threads": 1}   # learner defaults of this node (both: measured, see their docs)
+    OBS_DTYPE = np.float32
+    CSV_COLUMNS: list = []
+    QT_START_HINT = ""                       # extra arguments in the hint for starting a QT trainer
+    TIMED_CALLS = ("sim", "memory", "qt", "memory_reduce")   # phases made of service calls
+
+    uses_memory = False
+    uses_qt = False
+    reducer = "none"
+
+    def __init__(self, node_name: str, **node_kwargs):
+        super().__init__(node_name, **node_kwargs)
+        self.p = p = declare_config(self, self.CONFIG)
+        self.cfg = declare_config(self, self.LEARNER_CONFIGS[p.algorithm],
+                                  overrides={"variant": p.algorithm, **self.LEARNER_OVERRIDES})
+        if self.cfg.variant != p.algorithm:
+            raise ValueError(f"variant:={self.cfg.variant} contradicts algorithm:={p.algorithm}; set algorithm only")
+        self.stop_event = threading.Event()
+        self.ptimers = run_io.PhaseTimers()
+        self.log = self.get_logger()
+        self._configure()
+        self._open_run_dir()
+
+        # publishers / subscriptions (served by the background executor)
+        self.episode_pub = self.create_publisher(EpisodeSummary, "~/episodes", SUMMARY_QOS)
+        self.transitions_pub = self.create_publisher(TransitionBatch, "~/transitions", SUMMARY_QOS)
+        self.ep_parts: list[Transitions] = []     # the current training episode's stored transitions
+        self.qt_local = None
+        self.qt_cond = threading.Condition()
+        self.qt_received = 0
+        if self.uses_qt:
+            self.create_subscription(QTModelMsg, f"/{p.qt_trainer_node.strip('/')}/qt_model",
+                                     self._on_qt_model, QT_MODEL_QOS)
+        self._bring_up()
+
+    # ------------------------------------------------------------------------------ hooks
+    def _configure(self) -> None:
+        """Algorithm flags and node-specific publishers (before the bring-up)."""
+
+    def _embedded_params(self) -> tuple[dict, dict, dict]:
+        """Extra parameters of the embedded sim, memory and QT trainer nodes."""
+        return {}, {}, {}
+
+    def _check_env(self, info) -> None:
+        """Refuse a sim whose task does not suit the algorithm; read what the learner needs."""
+
+    def _setup_learner(self) -> None:
+        raise NotImplementedError
+
+    def _before_loop(self) -> None:
+        """After the logs are open, before the loop (outside its error handling)."""
+
+    def _loop(self) -> None:
+        raise NotImplementedError
+
+    def _start_line(self) -> str:
+        raise NotImplementedError
+
+    def _timer_notes(self, rec: dict, elapsed: float, steps: int) -> tuple[str, str]:
+        """Node-specific time-split notes: fields added to `rec`, texts appended to the two log lines."""
+        return "", ""
+
+    def _final_records(self, rc: int) -> None:
+        """Before the final checkpoint."""
+
+    def _finish(self, elapsed: float, steps: int, timers: dict) -> None:
+        """After the time split, before the logs close: the run's last words."""
+
+    # ------------------------------------------------------------------------------ set-up
+    def _open_run_dir(self) -> None:
+        """The run directory; on resume, it and the run id come from the checkpoint."""
+        p = self.p
+        self.resume_state = None
+        self.resume_path = None
+        run_id = p.run_id
+        runs_root = Path(p.runs_root)
+        if p.resume:
+            from .core.checkpoint import load_checkpoint
+            ck = run_io.resolve_checkpoint(p.resume)
+            self.resume_state = load_checkpoint(ck)
+            meta = self.resume_state["run"]
+            if meta["algorithm"] != p.algorithm or meta["env_id"] != p.env_id:
+                raise ValueError(f"{ck} is a {meta['algorithm']} run on {meta['env_id']}; start with "
+                                 f"-p algorithm:={meta['algorithm']} -p env_id:={meta['env_id']}")
+            run_id = meta["run_id"]
+            runs_root = ck.parent.parent.parent
+            self.resume_path = ck
+        if not run_id:
+            run_id = run_io.default_run_id(p.algorithm, p.env_id, self.cfg.seed)
+        self.run_id = run_id
+        self.run_dir = run_io.RunDir(runs_root, run_id)
+
+    def _bring_up(self) -> None:
+        p = self.p
+        self.embedded = None
+        self.recorder = None
+        nodes: list[Node] = [self]
+        if p.bringup == "embedded":
+            sim, mem, qt = self._embedded_params()
+            self.embedded = make_embedded_nodes(
+                self.context, sim_name=p.sim_node,
+                sim_params={"env_id": p.env_id, "episode_end": p.episode_end, "run_id": self.run_id,
+                            "seed": int(self.cfg.seed), **sim},
+                memory_name=p.memory_node if self.uses_memory else None, memory_params=mem,
+                qt_name=p.qt_trainer_node if self.reducer == "qt_trainer" else None,
+                qt_params={"memory_node": p.memory_node, "reduce_batch": int(p.reduce_batch), **qt})
+            nodes += self.embedded.all
+        if p.record:
+            nodes.append(self._make_recorder(self.run_id))
+        self.spinner = Spinner(nodes, self.context, num_threads=4).start()
+        try:
+            self._connect()
+        except BaseException:
+            self.shutdown()
+            raise
+
+    def _make_recorder(self, run_id: str) -> Node:
+        """An in-process recorder_node bagging this run's topics into <run dir>/bag."""
+        from rclpy.parameter import Parameter
+
+        from .recorder_node import RecorderNode
+        me = self.get_fully_qualified_name()
+        topics = [f"{me}/transitions", f"{me}/episodes", f"{me}/evaluations",
+                  f"/{self.p.sim_node.strip('/')}/episodes"]
+        if self.uses_memory:
+            topics.append(f"/{self.p.memory_node.strip('/')}/stats")
+        self.recorder = RecorderNode(context=self.context, parameter_overrides=[
+            Parameter("run_id", value=run_id), Parameter("algorithm", value=self.p.algorithm),
+            Parameter("output_dir", value=str(self.run_dir.path.parent)),
+            Parameter("storage", value=self.p.record_storage), Parameter("topics", value=topics)])
+        return self.recorder
+
+    def _connect(self) -> None:
+        """Service clients; wait for the services; check the sim's task."""
+        p = self.p
+        sim = p.sim_node.strip("/")
+        self.c_reset = self.create_client(Reset, f"/{sim}/reset")
+        self.c_step = self.create_client(Step, f"/{sim}/step")
+        self.c_info = self.create_client(EnvInfo, f"/{sim}/info")
+        clients = {"sim": self.c_step}
+        if self.uses_memory:
+            mem = p.memory_node.strip("/")
+            self.c_store = self.create_client(Store, f"/{mem}/store")
+            self.c_sample = self.create_client(Sample, f"/{mem}/sample")
+            self.c_stats = self.create_client(GetStats, f"/{mem}/get_stats")
+            clients["memory"] = self.c_store
+            if self.reducer == "qt_trainer":
+                self.c_reduce = self.create_client(Reduce, f"/{p.qt_trainer_node.strip('/')}/reduce")
+                clients["qt_trainer"] = self.c_reduce
+            else:
+                self.c_reduce = self.create_client(Reduce, f"/{mem}/reduce")
+        hints = {"sim": START_HINTS["sim"].format(name=sim),
+                 "memory": START_HINTS["memory"].format(name=p.memory_node),
+                 "qt_trainer": START_HINTS["qt_trainer"].format(name=p.qt_trainer_node) + self.QT_START_HINT}
+        wait_for_services(clients, p.startup_timeout_s, hints, self.stop_event)
+        info = call(self.c_info, EnvInfo.Request(), p.startup_timeout_s, check=False)
+        if info.env_id != p.env_id:
+            raise ValueError(f"the sim node /{sim} serves {info.env_id}, not env_id:={p.env_id}; "
+                             f"set -p env_id:={info.env_id} or restart the sim node")
+        self.info = info
+        self.episode_rule = info.episode_end or "standard"
+        self.obs_shape = tuple(int(d) for d in info.observation_shape)
+        self._check_env(info)
+
+    def _reset_counters(self) -> None:
+        self.step = 0
+        self.episodes = 0
+        self.stored = 0            # transitions given to the memory / replay
+        self.reductions = 0
+        self.rtm_size = 0
+        self.tm_sets = 0
+        self.wall_offset = 0.0
+        self.last_update: dict = {}
+        self.last_reduce: dict = {}
+
+    # ------------------------------------------------------------------------------ ROS callbacks
+    def _on_qt_model(self, msg: QTModelMsg) -> None:
+        try:
+            t0 = time.perf_counter()
+            model = msg_to_qt(msg, device=self.cfg.device)
+            self.ptimers.add("qt_model_rebuild", time.perf_counter() - t0)
+        except Exception as exc:
+            self.log.error(f"cannot rebuild the published QTModel v{msg.version}: {exc}")
+            return
+        with self.qt_cond:
+            if self.qt_local is None or model.version >= self.qt_local.version:
+                self.qt_local = model
+            self.qt_received += 1
+            self.qt_cond.notify_all()
+
+    # ------------------------------------------------------------------------------ state
+    def _restore(self, state: dict) -> None:
+        self.learner.load_state_dict(state["learner"])
+        c = state["counters"]
+        self.step, self.episodes = int(c["step"]), int(c["episodes"])
+        self.reductions = int(c.get("reductions", 0))
+        self.wall_offset = float(c.get("wall_time_s", 0.0))
+        run_io.set_rng_state(state["rng"])
+        qt_state = state.get("qt_trainer")
+        if qt_state and self.embedded is not None and self.embedded.qt_trainer is not None:
+            self.embedded.qt_trainer.load_state_dict(qt_state)
+
+    def _state(self) -> dict:
+        st = {"run": {"run_id": self.run_id, "algorithm": self.p.algorithm, "env_id": self.p.env_id},
+              "learner": self.learner.state_dict(),
+              "counters": {"step": self.step, "episodes": self.episodes, "stored": self.stored,
+                           "reductions": self.reductions, "wall_time_s": self.wall_time()},
+              "rng": run_io.rng_state(),
+              "config": {"learner": {k: (list(v) if isinstance(v, tuple) else v)
+                                     for k, v in config_to_dict(self.cfg).items()},
+                         "params": config_to_dict(self.p)}}
+        if self.embedded is not None and self.embedded.qt_trainer is not None:
+            st["qt_trainer"] = self.embedded.qt_trainer.state_dict()
+        return st
+
+    def _run_config(self) -> dict:
+        """config.yaml: every parameter of the run (the node adds its env description)."""
+        e = self.embedded
+        return {"algorithm": self.p.algorithm, "params": config_to_dict(self.p),
+                "learner": config_to_dict(self.cfg), "reducer": self.reducer,
+                "qt_trainer": config_to_dict(e.qt_trainer.qt_config) if e is not None and e.qt_trainer else None,
+                "memory": (config_to_dict(e.memory.config) if e is not None and e.memory is not None
+                           and hasattr(e.memory, "config") else None),
+                "resumed_from": str(self.resume_path) if self.resume_state is not None else None}
+
+    def wall_time(self) -> float:
+        return self.wall_offset + (time.monotonic() - self.t_start)
+
+    def save(self, final: bool = False) -> Path:
+        with self.ptimers("io"):
+            path = self.run_dir.save_checkpoint(self._state(), self.step, self.p.keep_checkpoints)
+            self.metrics.flush()
+        self.log.info(f"{'final ' if final else ''}checkpoint: {path}")
+        return path
+
+    # ------------------------------------------------------------------------------ main loop
+    def run(self) -> int:
+        p = self.p
+        self._reset_counters()
+        self._setup_learner()
+        if self.resume_state is not None:
+            self._restore(self.resume_state)
+        rd = self.run_dir
+        rd.write_config(self._run_config())
+        self.metrics = run_io.MetricsLog(rd.file("metrics.jsonl"))
+        self.csv = run_io.CsvLog(rd.file("progress.csv"), self.CSV_COLUMNS)
+        self.scalars = run_io.ScalarLog(rd.file("tb") if p.tensorboard else None)
+        self.progress = run_io.Progress(self._progress_total(), p.progress_period_s, start_step=self.step)
+        self.t_start = time.monotonic()
+        start_step = self.step
+        self.log.info(f"{self._start_line()}; run dir {rd.path}  (Ctrl-C stops and saves a checkpoint)")
+        if not self.scalars.available and p.tensorboard:
+            self.log.warning(f"TensorBoard scalars off: {self.scalars.error}")
+        self.pending: list = []
+        self._before_loop()
+        rc = 0
+        try:
+            self._loop()
+        except ServiceError as exc:
+            if not self.stop_event.is_set():
+                self.log.error(f"stopping: {exc}")
+                rc = 1
+        except KeyboardInterrupt:
+            self.log.warning("interrupted twice: stopping without waiting")
+            rc = 130
+        finally:
+            elapsed = time.monotonic() - self.t_start
+            if self.stop_event.is_set():
+                self.log.info(f"stop requested at step {self.step}")
+            self._final_records(rc)
+            try:
+                self.save(final=True)
+            except Exception as exc:
+                self.log.error(f"final checkpoint failed: {exc}")
+            timers = self._report_timers(elapsed, self.step - start_step)
+            self._finish(elapsed, self.step - start_step, timers)
+            self.metrics.close()
+            self.csv.close()
+            self.scalars.close()
+        return rc
+
+    def _next_due(self, every: int) -> int | None:
+        """The first multiple of `every` after the current step (None when every is 0)."""
+        return (self.step // every + 1) * every if every > 0 else None
+
+    def _schedule_checkpoints(self, every: int) -> None:
+        self.ck_every = every
+        self.next_ck = self._next_due(every)
+
+    def _after_step(self) -> None:
+        """In the loop, after each step: a checkpoint and a progress line when due."""
+        if self.next_ck is not None and self.step >= self.next_ck:
+            self.save()
+            self.next_ck += self.ck_every
+        line = self.progress.tick(self.step)
+        if line:
+            self._progress_line(line)
+
+    def _progress_line(self, line: str) -> None:
+        raise NotImplementedError
+
+    def _progress_total(self) -> int:
+        return int(self.p.total_steps)
+
+    def _resume_text(self) -> str:
+        return f"resuming at step {self.step}" if self.step else "fresh run"
+
+    # ------------------------------------------------------------------------------ sim
+    def _reset_env(self) -> np.ndarray:
+        with self.ptimers("sim"):
+            r = call(self.c_reset, Reset.Request(seed=-1), self.p.service_timeout_s)
+        self.ep_return, self.ep_len = 0.0, 0
+        self.ep_parts = []
+        return np.array(array_to_numpy(r.observation), dtype=self.OBS_DTYPE)
+
+    def _sim_step(self, action: np.ndarray):
+        """``<sim>/step``; adds the reward and the step to the episode. Returns (response, next obs)."""
+        req = Step.Request()
+        numpy_to_array(np.asarray(action, np.float32), req.action)
+        with self.ptimers("sim"):
+            r = call(self.c_step, req, self.p.service_timeout_s)
+        self.ep_return += float(r.reward)
+        self.ep_len += 1
+        return r, np.array(array_to_numpy(r.observation), dtype=self.OBS_DTYPE)
+
+    def _episode_over(self, terminated: bool, truncated: bool) -> bool:
+        return episode_over(self.episode_rule, terminated, truncated)
+
+    def _transitions_wanted(self) -> bool:
+        return self.p.publish_transitions and (self.recorder is not None
+                                               or self.transitions_pub.get_subscription_count() > 0)
+
+    def _publish_episode(self, terminated: bool, truncated: bool, *, ep_frames: int, global_frames: int,
+                         x: int, **fields) -> None:
+        """Count a finished training episode, publish its TransitionBatch (the stored transitions,
+        labels included) and then its EpisodeSummary (recording contract), and log it; `fields` go to
+        the metrics record, `x` is the TensorBoard step."""
+        self.episodes += 1
+        self.progress.episode(self.ep_return)
+        stamp = self.get_clock().now().to_msg()
+        parts, self.ep_parts = self.ep_parts, []
+        with self.ptimers("publish"):
+            if parts and self._transitions_wanted():
+                bm = transitions_to_batch(parts[0] if len(parts) == 1 else Transitions.concatenate(parts))
+                bm.header.stamp = stamp
+                self.transitions_pub.publish(bm)
+            msg = EpisodeSummary(run_id=self.run_id, env_id=self.p.env_id, source="train",
+                                 episode_id=self.episodes - 1, episode_return=float(self.ep_return),
+                                 length=int(self.ep_len), frames=int(ep_frames), terminated=bool(terminated),
+                                 truncated=bool(truncated), global_step=int(self.step),
+                                 global_frames=int(global_frames), wall_time_s=float(self.wall_time()))
+            msg.header.stamp = stamp
+            self.episode_pub.publish(msg)
+        self.metrics.write("episode", source="train", step=self.step, episode=self.episodes - 1,
+                           ret=self.ep_return, length=self.ep_len, terminated=terminated, truncated=truncated,
+                           wall_time_s=self.wall_time(), **fields)
+        self.scalars.scalar("train/episode_return", self.ep_return, x)
+
+    # ------------------------------------------------------------------------------ memory
+    def _get_stats(self) -> dict:
+        s = call(self.c_stats, GetStats.Request(), self.p.service_timeout_s, check=False).stats
+        d = {k: getattr(s, k) for k in ("identities", "tm_sets", "rtm_size", "transitions_stored",
+                                         "similarity_hits", "hit_rate", "compaction_ratio", "reductions",
+                                         "sets_reduced", "evictions", "bytes_used")}
+        d = {k: (float(v) if isinstance(v, float) else int(v)) for k, v in d.items()}
+        self.rtm_size, self.tm_sets = d["rtm_size"], d["tm_sets"]
+        return d
+
+    def _reduce_call(self):
+        """One ``<reducer>/reduce`` call (reduce_batch sets, qt_epochs): counters and last_reduce."""
+        p = self.p
+        r = call(self.c_reduce, Reduce.Request(max_sets=int(p.reduce_batch), epochs=int(p.qt_epochs)),
+                 p.service_timeout_s)
+        self.ptimers.add("qt_server" if self.reducer == "qt_trainer" else "memory_reduce_server", r.duration_s, 0)
+        self.rtm_size = int(r.rtm_size)
+        self.reductions += 1
+        self.last_reduce = {"sets": int(r.sets_reduced), "qt_version": int(r.qt_version),
+                            "qt_loss": float(r.qt_loss), "duration_s": float(r.duration_s)}
+        return r
+
+    def _wait_qt_model(self, version: int) -> None:
+        """Wait up to qt_wait_s for the QTModel of `version` to arrive on qt_model."""
+        deadline = time.monotonic() + self.p.qt_wait_s
+        with self.qt_cond:
+            while (self.qt_local is None or self.qt_local.version < version) and time.monotonic() < deadline:
+                self.qt_cond.wait(max(0.0, deadline - time.monotonic()))
+
+    # ------------------------------------------------------------------------------ time split
+    def _report_timers(self, elapsed: float, steps: int) -> dict:
+        """Log the time split; estimate the ROS transport share from small probe calls."""
+        p = self.p
+        probe_ms = float("nan")
+        calls = sum(self.ptimers.calls.get(k, 0) for k in self.TIMED_CALLS)
+        if p.transport_probe_calls > 0 and not self.stop_event.is_set():
+            client, req = (self.c_stats, GetStats.Request()) if self.uses_memory else (self.c_info, EnvInfo.Request())
+            try:
+                t0 = time.perf_counter()
+                for _ in range(p.transport_probe_calls):
+                    call(client, req, 10.0, check=False)
+                probe_ms = 1000.0 * (time.perf_counter() - t0) / p.transport_probe_calls
+            except ServiceError:
+                pass
+        transport_s = probe_ms / 1000.0 * calls if math.isfinite(probe_ms) else float("nan")
+        rate = steps / elapsed if elapsed > 0 else float("nan")
+        rec = {"elapsed_s": elapsed, "steps": steps, "steps_per_s": rate, "phases": self.ptimers.as_dict(),
+               "ros_round_trip_ms": probe_ms, "service_calls": calls, "transport_estimate_s": transport_s}
+        split_note, estimate_note = self._timer_notes(rec, elapsed, steps)
+        self.log.info(f"time split over {elapsed:.1f} s, {steps} steps ({rate:.1f} steps/s): "
+                      + self.ptimers.summary(elapsed) + split_note)
+        self.log.info(f"estimates: ROS round trip {probe_ms:.2f} ms/call x {calls} calls = {transport_s:.1f} s "
+                      "transport" + estimate_note)
+        self.metrics.write("timers", **rec)
+        return rec
+
+    # ------------------------------------------------------------------------------ shutdown
+    def shutdown(self) -> None:
+        try:
+            self.spinner.stop()
+        except Exception:
+            pass
+        if self.embedded is not None:
+            self.embedded.destroy()
+        if self.recorder is not None:
+            try:
+                self.recorder.close()
+            finally:
+                self.recorder.destroy_node()
+        self.destroy_node()
+
+    # ------------------------------------------------------------------------------ --help
+    @classmethod
+    def help_text(cls) -> str:
+        """The module's usage text and every parameter with its default and description."""
+        doc = (sys.modules[cls.__module__].__doc__ or "").strip()
+        lines = [doc, "", "Node parameters (--ros-args -p name:=value, or --params-file; read-only):"]
+        lines += [f"  {f.name} (default {d!r}): {describe(f)}" for f, d, _ in spec_of(cls.CONFIG)]
+        algorithm = {f.name: d for f, d, _ in spec_of(cls.CONFIG)}["algorithm"]
+        lcls = cls.LEARNER_CONFIGS[algorithm]
+        others = sorted({f"{c.__name__} for {a}" for a, c in cls.LEARNER_CONFIGS.items() if c is not lcls})
+        lines += ["", f"Learner hyper-parameters ({lcls.__name__}, algorithm {algorithm}"
+                  + (f"; {', '.join(others)}" if others else "") + "):"]
+        for f, d, _ in spec_of(lcls):
+            if f.name != "variant":
+                lines.append(f"  {f.name} (default {cls.LEARNER_OVERRIDES.get(f.name, d)!r}): {describe(f)}")
+        lines += ["", "In the embedded bring-up, command-line parameters also reach the embedded sim, memory "
+                  "and QT trainer nodes that declare them (docs/sim.md, docs/memory.md, docs/comcact.md)."]
+        return "\n".join(lines)
+
+
+def run_main(node_cls: type, name: str, args=None) -> int:
+    """An agent node's entry point: 0 done (or stopped with Ctrl-C / SIGTERM after saving), 1 cannot
+    start / failed, 130 aborted by a second Ctrl-C. ``--help`` prints the parameters."""
+    argv = sys.argv if args is None else args
+    if "-h" in argv[1:] or "--help" in argv[1:]:
+        print(node_cls.help_text())
+        return 0
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    logger = rclpy.logging.get_logger(name)
+    node = None
+    stop = threading.Event()
+
+    def on_signal(signum, _frame):
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+        if node is not None:
+            node.stop_event.set()
+        logger.warning("stop requested: finishing the current step, then saving a checkpoint "
+                       "(Ctrl-C again to abort)")
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    rc = 0
+    try:
+        try:
+            node = node_cls()
+            if stop.is_set():
+                node.stop_event.set()
+        except Exception as exc:   # bad parameter, unknown task, missing nodes: one readable message
+            logger.error(f"cannot start: {exc}")
+            return 1
+        rc = node.run()
+    except KeyboardInterrupt:
+        rc = 130
+    finally:
+        if node is not None:
+            node.shutdown()
+        rclpy.try_shutdown()
+    return rc

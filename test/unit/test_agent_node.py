@@ -1,0 +1,89 @@
+"""agent_node: the learner nodes' shared parameters and entry point, without a running ROS graph
+(the start-up error test runs the node in a separate process)."""
+import dataclasses
+import subprocess
+import sys
+
+import pytest
+
+from comper_agent.agent_node import AgentRunConfig, episode_over, redefault
+from comper_agent.comcact_node import ComcactNode, ComcactNodeConfig
+from comper_agent.comper_node import ComperNode, ComperNodeConfig
+from comper_msgs_py.params import ConfigError, config_from_dict, config_to_dict
+
+_COMMON = {"bringup": "embedded", "episode_end": "standard", "runs_root": "runs", "run_id": "", "resume": "",
+           "keep_checkpoints": 3, "tensorboard": True, "record": False, "record_storage": "mcap",
+           "publish_transitions": True, "sim_node": "sim_node", "memory_node": "memory_node",
+           "qt_trainer_node": "qt_trainer_node", "service_timeout_s": 120.0, "startup_timeout_s": 30.0,
+           "transport_probe_calls": 200}
+
+# every parameter the nodes declared before the refactoring, with its default (record: comcact only,
+# publish_transitions: comper only, before; both nodes have both now)
+COMCACT = {**_COMMON, "algorithm": "comcact", "env_id": "InvertedPendulum-v4", "total_steps": 50_000,
+           "warmup_steps": 0, "store_every": 1, "reduce_every": 10, "reduce_batch": 50_000, "qt_epochs": 0,
+           "qt_targets": "local", "qt_wait_s": 2.0, "eval_every": 5_000, "eval_episodes": 10, "eval_seed": -1,
+           "checkpoint_every": 0, "progress_period_s": 5.0}
+COMPER = {**_COMMON, "algorithm": "comper", "env_id": "ALE/Freeway-v5", "total_frames": 100_000, "max_steps": 0,
+          "reduce_every": 100, "reduce_batch": 1_000, "qt_epochs": 0, "qt_targets": "local", "qt_wait_s": 5.0,
+          "reducer": "auto", "qt_onednn": False, "restore_batch": True, "store_every": 4, "stats_every": 1_000,
+          "checkpoint_every": 5_000, "progress_period_s": 10.0}
+
+
+@pytest.mark.parametrize("cls, expected", [(ComcactNodeConfig, COMCACT), (ComperNodeConfig, COMPER)])
+def test_node_configs_keep_every_parameter_name_and_default(cls, expected):
+    assert config_to_dict(cls()) == expected
+    assert issubclass(cls, AgentRunConfig) and dataclasses.is_dataclass(cls)
+
+
+@pytest.mark.parametrize("cls, name, bad", [
+    (ComcactNodeConfig, "algorithm", "bogus"), (ComcactNodeConfig, "qt_targets", "x"),
+    (ComcactNodeConfig, "bringup", "both"), (ComcactNodeConfig, "total_steps", 0),
+    (ComcactNodeConfig, "eval_episodes", 0), (ComcactNodeConfig, "record_storage", "zip"),
+    (ComperNodeConfig, "algorithm", "ddpg"), (ComperNodeConfig, "reducer", "x"),
+    (ComperNodeConfig, "total_frames", 0), (ComperNodeConfig, "episode_end", "never"),
+    (ComperNodeConfig, "store_every", 0), (ComperNodeConfig, "qt_wait_s", -1.0)])
+def test_bad_values_are_refused_with_the_parameter_name(cls, name, bad):
+    with pytest.raises(ConfigError, match=f"'{name}'"):
+        config_from_dict(cls, {name: bad})
+
+
+def test_floats_accept_integers_and_strings_are_coerced():
+    c = config_from_dict(ComperNodeConfig, {"startup_timeout_s": 60, "qt_wait_s": 1, "record": "true"})
+    assert c.startup_timeout_s == 60.0 and isinstance(c.startup_timeout_s, float) and c.record is True
+
+
+def test_redefault_keeps_description_and_range():
+    f = {f.name: f for f in dataclasses.fields(ComperNodeConfig)}
+    g = {f.name: f for f in dataclasses.fields(AgentRunConfig)}
+    for name in ("qt_wait_s", "progress_period_s"):
+        assert f[name].metadata == g[name].metadata and f[name].default != g[name].default
+    assert redefault(AgentRunConfig, "keep_checkpoints", 5).metadata["minimum"] == 0
+
+
+def test_episode_over_rules():
+    assert episode_over("standard", True, False) and episode_over("standard", False, True)
+    assert not episode_over("truncation_only", True, False) and episode_over("truncation_only", False, True)
+    assert episode_over("termination_only", True, False) and not episode_over("termination_only", False, True)
+
+
+@pytest.mark.parametrize("node_cls, cfg_cls", [(ComcactNode, ComcactNodeConfig), (ComperNode, ComperNodeConfig)])
+def test_help_lists_every_node_and_learner_parameter(node_cls, cfg_cls):
+    text = node_cls.help_text()
+    for f in dataclasses.fields(cfg_cls):
+        assert f"\n  {f.name} (default " in text
+    assert "\n  num_threads (default 1)" in text and "\n  variant " not in text
+    assert "Thesis: 100,000 (chapter 5)" in text or "Thesis: 50,000 (chapter 6)" in text
+
+
+@pytest.mark.parametrize("module, args, message", [
+    ("comcact_node", ["-p", "algorithm:=bogus"], "parameter 'algorithm': 'bogus' is not one of ['comcact', 'ddpg']"),
+    ("comper_node", ["-p", "reducer:=x"], "parameter 'reducer': 'x' is not one of"),
+    ("comper_node", ["-p", "algorithm:=comper", "-p", "reducer:=memory"], "comper needs QT"),
+])
+def test_a_node_that_cannot_start_says_why_in_one_line_and_exits_1(module, args, message, tmp_path):
+    p = subprocess.run([sys.executable, "-m", f"comper_agent.{module}", "--ros-args", "-p",
+                        f"runs_root:={tmp_path}", *args], capture_output=True, text=True, timeout=120)
+    out = (p.stdout + p.stderr).strip()
+    assert p.returncode == 1, out
+    assert len(out.splitlines()) == 1 and "cannot start: " in out and message in out, out
+    assert not any(tmp_path.iterdir())          # refused before any run directory is made
