@@ -27,7 +27,7 @@ import numpy as np
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -35,6 +35,7 @@ from comper_msgs.msg import QTModel as QTModelMsg
 from comper_msgs.srv import Reduce, ReduceBegin, ReduceCommit
 from comper_msgs_py.convert import (array_to_numpy, batch_to_transitions, numpy_to_array,
                                     numpy_to_seq, seq_to_numpy)
+from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 
 from .bringup import ServiceError, call
@@ -251,27 +252,12 @@ class QtTrainerNode(Node):
 
 
 def main(args=None) -> int:
-    """Entry point of ``ros2 run comper_agent qt_trainer_node``."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        try:
-            node = QtTrainerNode()
-        except Exception as exc:
-            rclpy.logging.get_logger("qt_trainer_node").error(f"cannot start: {exc}")
-            return 1
-        from .core.networks import configure_torch
-        configure_torch(node.num_threads or 1)
-        executor = MultiThreadedExecutor(num_threads=4)
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    """Entry point of ``ros2 run comper_agent qt_trainer_node``: 0 on Ctrl-C, 1 when it cannot start.
+    Multi-threaded: the reduce service waits on nested calls to the memory node."""
+    from .core.networks import configure_torch
+    return serve_node(QtTrainerNode, "qt_trainer_node", args,
+                      executor_for=lambda node: MultiThreadedExecutor(num_threads=4),
+                      on_ready=lambda node: configure_torch(node.num_threads or 1))
 
 
 if __name__ == "__main__":

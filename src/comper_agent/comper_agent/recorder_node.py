@@ -30,10 +30,10 @@ from pathlib import Path
 
 import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 
+from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 
 from .recording import (ChunkedBagWriter, RecorderConfig, comper_typestore, make_qos,
@@ -244,25 +244,7 @@ def main(args=None) -> int:
         for f, default, _ in spec_of(RecorderConfig):
             print(f"  {f.name} (default {default!r}): {describe(f)}")
         return 0
-    rclpy.init(args=args)
-    node = None
-    try:
-        try:
-            node = RecorderNode()
-        except Exception as exc:
-            rclpy.logging.get_logger("recorder_node").error(f"cannot start: {type(exc).__name__}: {exc}")
-            return 1
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.close()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return serve_node(RecorderNode, "recorder_node", args, on_close=lambda node: node.close())
 
 
 if __name__ == "__main__":

@@ -43,7 +43,7 @@ import numpy as np
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -52,6 +52,7 @@ from comper_msgs.srv import GetStats, Reduce, ReduceBegin, ReduceCommit, Sample,
 from comper_msgs_py.arrays import TransitionError
 from comper_msgs_py.convert import batch_to_transitions, numpy_to_seq, seq_to_numpy, transitions_to_batch
 from comper_msgs_py.params import ConfigError
+from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 
 from .core import CompactMemory, MemoryConfig, MemoryInputError, SnapshotError
@@ -359,33 +360,15 @@ class MemoryNode(Node):
 def main(args=None) -> int:
     """Entry point of ``ros2 run comper_memory memory_node``: 0 on Ctrl-C / SIGTERM, 1 when it
     cannot start (bad parameter, unreadable storage_dir)."""
-    rclpy.init(args=args)
-    node = None
-    executor = None
-    try:
-        try:
-            node = MemoryNode()
-        except Exception as exc:  # one readable line, no traceback
-            rclpy.logging.get_logger("memory_node").error(f"cannot start: {type(exc).__name__}: {exc}")
-            return 1
-        executor = (MultiThreadedExecutor(num_threads=node.executor_threads) if node.executor_threads > 1
-                    else SingleThreadedExecutor())
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if executor is not None:
-            executor.shutdown(timeout_sec=5.0)
-        if node is not None:
-            node.close()  # final flush of the WAL
-            persistent = bool(node.config.storage_dir)
-            node.destroy_node()
-            # after Ctrl-C the context is already shut down: log without the node (no rosout)
-            rclpy.logging.get_logger("memory_node.main").info(
-                "stopped" + (" (write-ahead log flushed and closed)" if persistent else ""))
-        rclpy.try_shutdown()
-    return 0
+    def close(node: MemoryNode) -> None:
+        node.close()  # final flush of the WAL
+        # after Ctrl-C the context is already shut down: log without the node (no rosout)
+        rclpy.logging.get_logger("memory_node.main").info(
+            "stopped" + (" (write-ahead log flushed and closed)" if node.config.storage_dir else ""))
+
+    return serve_node(MemoryNode, "memory_node", args, on_close=close,
+                      executor_for=lambda node: (MultiThreadedExecutor(num_threads=node.executor_threads)
+                                                 if node.executor_threads > 1 else SingleThreadedExecutor()))
 
 
 if __name__ == "__main__":

@@ -18,7 +18,6 @@ import sys
 
 import numpy as np
 import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -26,6 +25,7 @@ from comper_msgs.msg import Array, EpisodeSummary
 from comper_msgs.srv import EnvInfo, Reset, Step, StepMany
 from comper_msgs_py.arrays import TransitionError
 from comper_msgs_py.convert import array_to_numpy, numpy_to_array, numpy_to_seq, transitions_to_batch
+from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 
 from .core import EpisodeRecord, SimBridge, SimConfig, SimError
@@ -169,22 +169,7 @@ class SimNode(Node):
 
 def main(args=None) -> int:
     """Entry point of ``ros2 run comper_sim sim_node``: 0 on Ctrl-C, 1 when it cannot start."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        try:
-            node = SimNode()
-        except Exception as exc:  # unknown env id, bad parameter: one readable line, no traceback
-            rclpy.logging.get_logger("sim_node").error(f"cannot start: {exc}")
-            return 1
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return serve_node(SimNode, "sim_node", args)
 
 
 if __name__ == "__main__":

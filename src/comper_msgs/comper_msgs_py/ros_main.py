@@ -1,0 +1,53 @@
+"""The entry-point loop shared by the suite's service nodes (sim, memory, QT trainer, recorder).
+
+    def main(args=None) -> int:
+        return serve_node(SimNode, "sim_node", args)
+
+rclpy.init, construct the node (a failure is one readable `cannot start: ...` line and exit 1,
+not a traceback), spin it on the executor chosen for it until Ctrl-C / SIGTERM / shutdown, then
+close and destroy it and exit 0.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import rclpy
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
+
+__all__ = ["serve_node"]
+
+
+def serve_node(make_node: Callable[[], object], name: str, args=None, *,
+               executor_for: Callable[[object], Executor] = lambda node: SingleThreadedExecutor(),
+               on_ready: Callable[[object], None] | None = None,
+               on_close: Callable[[object], None] | None = None) -> int:
+    """Run one node as a process: 0 on Ctrl-C / SIGTERM, 1 when it cannot start.
+
+    executor_for(node) makes the executor (single-threaded by default; nodes with nested
+    service calls need a multi-threaded one). on_ready(node) runs before spinning (e.g. torch
+    thread settings); on_close(node) after spinning, before destroy_node (e.g. a final flush).
+    """
+    rclpy.init(args=args)
+    node = executor = None
+    try:
+        try:
+            node = make_node()
+        except Exception as exc:  # bad parameter, unknown env id, unreadable storage: one line
+            rclpy.logging.get_logger(name).error(f"cannot start: {type(exc).__name__}: {exc}")
+            return 1
+        if on_ready is not None:
+            on_ready(node)
+        executor = executor_for(node)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if executor is not None:
+            executor.shutdown(timeout_sec=5.0)
+        if node is not None:
+            if on_close is not None:
+                on_close(node)
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
