@@ -29,24 +29,12 @@ import sys
 import time
 from pathlib import Path
 
+from comper_agent.run_io import MetricsLog
+
 import numpy as np
 
 GAMES = ["Freeway", "Asterix", "Seaquest", "SpaceInvaders", "BeamRider"]
 VARIANTS = ["comper", "comper_f", "comper_m", "dqn"]
-
-
-def _read_jsonl(path: Path, kind: str) -> list[dict]:
-    out = []
-    if not path.exists():
-        return out
-    for line in path.read_text().splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if rec.get("kind") == kind:
-            out.append(rec)
-    return out
 
 
 def run_id(game: str, variant: str, seed: int) -> str:
@@ -76,7 +64,7 @@ def launch(args, game: str, variant: str, seed: int, domain: int) -> subprocess.
 
 
 def progress_of(args, rid: str) -> str:
-    recs = _read_jsonl(Path(args.out) / "runs" / rid / "metrics.jsonl", "progress")
+    recs = MetricsLog.read(Path(args.out) / "runs" / rid / "metrics.jsonl", "progress", missing_ok=True)
     if not recs:
         return "starting"
     r = recs[-1]
@@ -130,10 +118,10 @@ def report(args) -> None:
         game = s["env_id"].split("/")[-1].replace("-v5", "")
         key = (game, s["algorithm"])
         rows.setdefault(key, []).append(s)
-        eps = _read_jsonl(sd.parent / "metrics.jsonl", "episode")
+        eps = MetricsLog.read(sd.parent / "metrics.jsonl", "episode", missing_ok=True)
         curves.setdefault(game, {}).setdefault(s["algorithm"], []).append(
             ([e["frames"] for e in eps], [e["ret"] for e in eps]))
-        mem = _read_jsonl(sd.parent / "metrics.jsonl", "memory")
+        mem = MetricsLog.read(sd.parent / "metrics.jsonl", "memory", missing_ok=True)
         memory.setdefault(game, {}).setdefault(s["algorithm"], []).append(mem)
     table = []
     lines = ["| game | variant | seeds | last 10 (3*) | tercile 1 | tercile 2 | tercile 3 | episodes | frames | "

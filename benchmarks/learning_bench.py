@@ -25,6 +25,8 @@ import sys
 import time
 from pathlib import Path
 
+from comper_agent.run_io import MetricsLog
+
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_TASKS = ["Hopper-v4", "Walker2d-v4", "HalfCheetah-v4", "InvertedPendulum-v4", "InvertedDoublePendulum-v4"]
 
@@ -75,20 +77,6 @@ def launch(args, base: Path, alg, task, seed, domain):
     return {"rid": rid, "proc": p, "log": log, "t0": time.monotonic(), "alg": alg, "task": task, "seed": seed}
 
 
-def read_jsonl(path: Path, kind: str):
-    out = []
-    if not path.exists():
-        return out
-    for line in path.read_text().splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if rec.get("kind") == kind:
-            out.append(rec)
-    return out
-
-
 def run_all(args, base: Path) -> None:
     jobs = [(a, t, s) for t in args.tasks for a in args.algorithms for s in range(args.seeds)]
     print(f"[bench] {len(jobs)} runs ({len(args.tasks)} tasks x {len(args.algorithms)} algorithms x "
@@ -121,14 +109,14 @@ def run_all(args, base: Path) -> None:
                 r["log"].close()
                 running.remove(r)
                 done += 1
-                evals = read_jsonl(base / "runs" / r["rid"] / "metrics.jsonl", "eval")
+                evals = MetricsLog.read(base / "runs" / r["rid"] / "metrics.jsonl", "eval", missing_ok=True)
                 last = f"eval {evals[-1]['mean_return']:.1f} at {evals[-1]['step']}" if evals else "no eval"
                 print(f"[bench] done {r['rid']} rc {rc} in {time.monotonic() - r['t0']:.0f} s: {last} "
                       f"({done} finished, {len(jobs)} waiting)", flush=True)
         if time.monotonic() - last_status > 60 and running:
             last_status = time.monotonic()
             for r in running:
-                prog = read_jsonl(base / "runs" / r["rid"] / "metrics.jsonl", "progress")
+                prog = MetricsLog.read(base / "runs" / r["rid"] / "metrics.jsonl", "progress", missing_ok=True)
                 if prog:
                     print(f"[bench]   {r['rid']}: step {prog[-1]['step']}, {prog[-1]['steps_per_s']:.0f} steps/s",
                           flush=True)
@@ -149,8 +137,8 @@ def report(args, base: Path) -> dict:
             for s in range(args.seeds):
                 rid = run_id(a, t, s)
                 m = base / "runs" / rid / "metrics.jsonl"
-                evals = read_jsonl(m, "eval")
-                timers = read_jsonl(m, "timers")
+                evals = MetricsLog.read(m, "eval", missing_ok=True)
+                timers = MetricsLog.read(m, "timers", missing_ok=True)
                 results["runs"][rid] = {"task": t, "algorithm": a, "seed": s,
                                         "evals": [(e["step"], e["mean_return"], e["std_return"]) for e in evals],
                                         "timers": timers[-1] if timers else None}

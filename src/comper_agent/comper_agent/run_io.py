@@ -147,8 +147,11 @@ class MetricsLog:
             self._f.close()
 
     @staticmethod
-    def read(path: str | os.PathLike, kind: str | None = None) -> list[dict]:
+    def read(path: str | os.PathLike, kind: str | None = None, *, missing_ok: bool = False) -> list[dict]:
+        """Records of `kind` (all when None); missing_ok: [] for a file not written yet (a run starting)."""
         out = []
+        if missing_ok and not os.path.exists(path):
+            return out
         with open(path) as f:
             for line in f:
                 line = line.strip()
