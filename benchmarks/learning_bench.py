@@ -34,7 +34,9 @@ DEFAULT_TASKS = ["Hopper-v4", "Walker2d-v4", "HalfCheetah-v4", "InvertedPendulum
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tasks", nargs="+", default=DEFAULT_TASKS, help="gymnasium task ids")
-    ap.add_argument("--algorithms", nargs="+", default=["comcact", "ddpg"], choices=["comcact", "ddpg"])
+    ap.add_argument("--algorithms", nargs="+", default=["comcact", "ddpg"], choices=["comcact", "ddpg", "sb3_ddpg"],
+                    help="sb3_ddpg: Stable-Baselines3 DDPG with default settings, same evaluation protocol "
+                         "(benchmarks/sb3_reference.py; install it once with `make reference`)")
     ap.add_argument("--seeds", type=int, default=3, help="seeds per (task, algorithm): 0..N-1")
     ap.add_argument("--total-steps", type=int, default=50_000, help="steps per run (thesis: 50,000)")
     ap.add_argument("--eval-every", type=int, default=5_000, help="steps between evaluations (thesis: 5,000)")
@@ -57,6 +59,11 @@ def run_id(alg, task, seed):
 
 def launch(args, base: Path, alg, task, seed, domain):
     rid = run_id(alg, task, seed)
+    if alg == "sb3_ddpg":
+        cmd = [sys.executable, str(ROOT / "benchmarks" / "sb3_reference.py"), "--env-id", task, "--seed", str(seed),
+               "--total-steps", str(args.total_steps), "--eval-every", str(args.eval_every),
+               "--eval-episodes", str(args.eval_episodes), "--run-dir", str(base / "runs" / rid)]
+        return _spawn(base, rid, cmd, domain, alg, task, seed)
     cmd = [shutil.which("ros2") or "ros2", "run", "comper_agent", "comcact_node", "--ros-args",
            "-p", f"algorithm:={alg}", "-p", f"env_id:={task}", "-p", f"seed:={seed}",
            "-p", f"total_steps:={args.total_steps}", "-p", f"eval_every:={args.eval_every}",
@@ -66,6 +73,10 @@ def launch(args, base: Path, alg, task, seed, domain):
     if extra and extra[0] == "--ros-args":
         extra = extra[1:]
     cmd += extra
+    return _spawn(base, rid, cmd, domain, alg, task, seed)
+
+
+def _spawn(base: Path, rid: str, cmd: list, domain: int, alg, task, seed) -> dict:
     env = os.environ.copy()
     env["ROS_DOMAIN_ID"] = str(domain)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -169,7 +180,8 @@ def report(args, base: Path) -> dict:
     md = ["# Learning benchmark", "",
           f"{args.total_steps:,} steps per run, evaluation every {args.eval_every:,} steps "
           f"({args.eval_episodes} deterministic episodes), mean +- std over seeds of the per-run mean "
-          "evaluation return; steps/s = the whole run including evaluations.", "", *lines, "",
+          "evaluation return; steps/s = the whole run including evaluations (sb3_ddpg: Stable-Baselines3 "
+          "DDPG, default settings, in-process gymnasium env, no ROS).", "", *lines, "",
           "Time split per run (seconds; phases measured in comcact_node):", ""]
     for rid, r in results["runs"].items():
         if r["timers"]:

@@ -95,6 +95,24 @@ def test_sample_uniform_distinct():
     assert hits.min() > 40 and hits.max() < 120  # expectation 80
 
 
+def test_sample_num_batches_are_independent_distinct_draws():
+    rng = np.random.default_rng(4)
+    mem = CompactMemory(MemoryConfig(max_sample_batch=100))
+    mem.store(make(rng, 30))
+    mem.reduce()
+    res = mem.sample(20, rng=np.random.default_rng(1), num_batches=5)
+    assert len(res.transitions) == 100 and res.identity_ids.shape == (100,)
+    blocks = res.identity_ids.reshape(5, 20)
+    assert all(len(np.unique(b)) == 20 for b in blocks)        # distinct within each batch
+    assert len({tuple(sorted(b)) for b in blocks}) > 1          # independent draws, not one repeated
+    # the same rows as five one-batch draws from the same generator
+    g = np.random.default_rng(1)
+    one_by_one = np.concatenate([mem.sample(20, rng=g).identity_ids for _ in range(5)])
+    np.testing.assert_array_equal(res.identity_ids, one_by_one)
+    with pytest.raises(MemoryInputError, match="max_sample_batch"):
+        mem.sample(20, num_batches=6)                           # 120 rows > 100: refused
+
+
 def test_store_into_leased_set_is_not_lost_and_expiry_returns_to_front():
     rng = np.random.default_rng(3)
     clock = Clock()

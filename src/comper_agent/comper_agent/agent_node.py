@@ -235,7 +235,7 @@ class AgentNode(Node):
             nodes += self.embedded.all
         if p.record:
             nodes.append(self._make_recorder(self.run_id))
-        self.spinner = Spinner(nodes, self.context, num_threads=4).start()
+        self.spinner = Spinner(nodes, self.context).start()
         try:
             self._connect()
         except BaseException:

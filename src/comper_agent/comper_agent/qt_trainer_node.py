@@ -159,6 +159,10 @@ class QtTrainerNode(Node):
             f"epochs {c.qt_epochs}; memory /{self.memory_name}; reduce_batch "
             f"{self.reduce_batch or 'memory default'}; timer {'off' if self.period_s <= 0 else f'{self.period_s:g} s'}")
 
+    def make_executor(self, context=None):
+        """Multi-threaded: the reduce service waits on nested calls to the memory node."""
+        return MultiThreadedExecutor(num_threads=4, context=context)
+
     # --------------------------------------------------------------------------- state
     def state_dict(self) -> dict:
         return {"qt": self.qt.state_dict(), "reductions": self.reductions}
@@ -256,7 +260,6 @@ def main(args=None) -> int:
     Multi-threaded: the reduce service waits on nested calls to the memory node."""
     from .core.networks import configure_torch
     return serve_node(QtTrainerNode, "qt_trainer_node", args,
-                      executor_for=lambda node: MultiThreadedExecutor(num_threads=4),
                       on_ready=lambda node: configure_torch(node.num_threads or 1))
 
 

@@ -230,14 +230,16 @@ class MemoryClient:
                           int(r.wal_sequence))
 
     def sample(self, k: int, source: str = "rtm", seed: int | None = None, *,
-               timeout: float | None = None) -> tuple[Transitions, np.ndarray, np.ndarray]:
+               num_batches: int = 1, timeout: float | None = None) -> tuple[Transitions, np.ndarray, np.ndarray]:
         """k distinct entries, uniformly, from RTM (default) or TM (the COMPER-M ablation).
 
-        Returns (transitions, identity_ids uint64 [k], counts uint32 [k]); transitions.value_labels
-        are QT predictions (RTM) or newest labels (TM). seed >= 0: a reproducible draw."""
+        Returns (transitions, identity_ids uint64 [n], counts uint32 [n]) with n = k * num_batches
+        (num_batches independent draws of k, one after the other); transitions.value_labels are QT
+        predictions (RTM) or newest labels (TM). seed >= 0: a reproducible draw."""
         if source not in SOURCES:
             raise ValueError(f"sample: source must be 'rtm' or 'tm', got {source!r}")
-        req = Sample.Request(batch_size=int(k), source=SOURCES[source], seed=-1 if seed is None else int(seed))
+        req = Sample.Request(batch_size=int(k), source=SOURCES[source], seed=-1 if seed is None else int(seed),
+                             num_batches=int(num_batches))
         r = self._call(self._sample, req, timeout)
         return (batch_to_transitions(r.batch, validate=False), seq_to_numpy(r.identity_ids, np.uint64),
                 seq_to_numpy(r.counts, np.uint32))

@@ -167,6 +167,12 @@ class MemoryNode(Node):
             f"max_sample_batch {c.max_sample_batch}, lease_timeout_s {c.lease_timeout_s:g}, "
             f"stats every {self.stats_period_s:g} s, executor_threads {self.executor_threads}, faiss_threads {self.faiss_threads or 'default'}; {storage}")
 
+    def make_executor(self, context=None):
+        """The executor of ``executor_threads`` (also used when another process embeds this node)."""
+        if self.executor_threads > 1:
+            return MultiThreadedExecutor(num_threads=self.executor_threads, context=context)
+        return SingleThreadedExecutor(context=context)
+
     # --- helpers ------------------------------------------------------------------------------
     def _refuse(self, response, what: str, exc: Exception):
         if isinstance(exc, (_Refused,) + _REFUSED):
@@ -238,10 +244,11 @@ class MemoryNode(Node):
             source = SOURCES.get(request.source)
             if source is None:
                 raise _Refused(f"sample: unknown source {request.source} (SOURCE_RTM=0, SOURCE_TM=1)")
+            nb = int(request.num_batches)
             if request.seed >= 0:
-                result = self.memory.sample(request.batch_size, source, seed=int(request.seed))
+                result = self.memory.sample(request.batch_size, source, seed=int(request.seed), num_batches=nb)
             else:  # the core holds its lock while it draws, so sharing one generator is safe
-                result = self.memory.sample(request.batch_size, source, rng=self._rng)
+                result = self.memory.sample(request.batch_size, source, rng=self._rng, num_batches=nb)
         except Exception as exc:
             return self._refuse(response, "sample", exc)
         transitions_to_batch(result.transitions, response.batch)
@@ -366,9 +373,7 @@ def main(args=None) -> int:
         rclpy.logging.get_logger("memory_node.main").info(
             "stopped" + (" (write-ahead log flushed and closed)" if node.config.storage_dir else ""))
 
-    return serve_node(MemoryNode, "memory_node", args, on_close=close,
-                      executor_for=lambda node: (MultiThreadedExecutor(num_threads=node.executor_threads)
-                                                 if node.executor_threads > 1 else SingleThreadedExecutor()))
+    return serve_node(MemoryNode, "memory_node", args, on_close=close)
 
 
 if __name__ == "__main__":

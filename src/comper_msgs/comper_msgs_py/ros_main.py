@@ -18,13 +18,14 @@ __all__ = ["serve_node"]
 
 
 def serve_node(make_node: Callable[[], object], name: str, args=None, *,
-               executor_for: Callable[[object], Executor] = lambda node: SingleThreadedExecutor(),
+               executor_for: Callable[[object], Executor] | None = None,
                on_ready: Callable[[object], None] | None = None,
                on_close: Callable[[object], None] | None = None) -> int:
     """Run one node as a process: 0 on Ctrl-C / SIGTERM, 1 when it cannot start.
 
-    executor_for(node) makes the executor (single-threaded by default; nodes with nested
-    service calls need a multi-threaded one). on_ready(node) runs before spinning (e.g. torch
+    executor_for(node) makes the executor; by default the node's own ``make_executor()`` if it
+    has one (nodes with nested service calls need a multi-threaded one), else a
+    SingleThreadedExecutor. on_ready(node) runs before spinning (e.g. torch
     thread settings); on_close(node) after spinning, before destroy_node (e.g. a final flush).
     """
     rclpy.init(args=args)
@@ -37,7 +38,12 @@ def serve_node(make_node: Callable[[], object], name: str, args=None, *,
             return 1
         if on_ready is not None:
             on_ready(node)
-        executor = executor_for(node)
+        if executor_for is not None:
+            executor = executor_for(node)
+        elif callable(getattr(node, "make_executor", None)):
+            executor = node.make_executor()
+        else:
+            executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -52,8 +52,10 @@ class ComcactLearner:
             net.eval()
         for p in list(self.actor_target.parameters()) + list(self.critic_target.parameters()):
             p.requires_grad_(False)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=c.actor_lr)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=c.critic_lr)
+        # fused: one kernel per step instead of ~10 per parameter tensor (same arithmetic; measured
+        # 8.7 -> ~6 ms per DDPG update at batch 64 on the 2-core CPU, docs/comcact.md)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=c.actor_lr, fused=True)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=c.critic_lr, fused=True)
         self.noise = OUNoise(self.action_dim, c.ou_theta, c.ou_sigma, dt=c.ou_dt, seed=c.seed)
         self.updates = 0      # DDPG updates done
         self.qt_steps = 0     # extra critic steps towards QT targets done

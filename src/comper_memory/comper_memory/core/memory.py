@@ -603,18 +603,21 @@ class CompactMemory:
 
     # ================================================================== sampling
     def sample(self, k: int, source: str = "rtm", *, rng: np.random.Generator | None = None,
-               seed: int | None = None, allow_fewer: bool = False) -> SampleResult:
+               seed: int | None = None, allow_fewer: bool = False, num_batches: int = 1) -> SampleResult:
         """k distinct entries drawn uniformly from RTM (default) or TM.
 
+        num_batches > 1: that many independent draws of k, concatenated (entries are distinct
+        within each draw, not across draws); k * num_batches must not exceed max_sample_batch.
         k larger than the source: MemoryInputError, unless allow_fewer=True (then all entries,
         in random order)."""
         with self._lock:
             self._expire_leases()
             if source not in ("rtm", "tm"):
                 raise MemoryInputError(f"sample: source must be 'rtm' or 'tm', got {source!r}")
-            k = int(k)
-            if k < 0 or k > self.config.max_sample_batch:
-                raise MemoryInputError(f"sample: k={k} outside [0, max_sample_batch={self.config.max_sample_batch}]")
+            k, nb = int(k), max(1, int(num_batches))
+            if k < 0 or k * nb > self.config.max_sample_batch:
+                raise MemoryInputError(f"sample: k={k} x num_batches={nb} outside [0, max_sample_batch="
+                                       f"{self.config.max_sample_batch}]")
             ds = self.rtm if source == "rtm" else self.tm
             if k > ds.n:
                 if not allow_fewer:
@@ -623,7 +626,12 @@ class CompactMemory:
             if self.schema is None:
                 raise MemoryInputError("sample: the memory is empty")
             rng = rng if rng is not None else np.random.default_rng(seed)
-            idx = rng.choice(ds.n, size=k, replace=False) if k else np.zeros(0, np.int64)
+            if k == 0:
+                idx = np.zeros(0, np.int64)
+            elif nb == 1:
+                idx = rng.choice(ds.n, size=k, replace=False)
+            else:
+                idx = np.concatenate([rng.choice(ds.n, size=k, replace=False) for _ in range(nb)])
             slots = ds.items[idx]
             labels = self.a["rtm_pred"][slots] if source == "rtm" else self._newest_labels(slots)
             return SampleResult(self._reps(slots, labels), self.a["id"][slots].copy(),
