@@ -128,10 +128,12 @@ def test_variants_use_their_sampling_source_and_target(launch, tmp_path):
     assert "q_target" in st["comper_f"]["learner"] and "qt_trainer" not in st["comper_f"]
     assert "memory_reduce" in ph["comper_f"] and "qt" not in ph["comper_f"] and "qt_predict" not in ph["comper_f"]
     assert s["comper_f"]["updates"] >= 45 and s["comper_f"]["memory"]["rtm_size"] > 0
+    # RTM sampling: the batches of the updates up to the next reduction come in one call (25 per 100 steps)
+    assert s["comper_f"]["sampling"]["sample_calls"] * 10 <= s["comper_f"]["updates"]
 
     # COMPER-M: QT target, sampling from TM, QT trained by the QT trainer
     assert s["comper_m"]["sampling"]["source"] == "tm" and s["comper_m"]["sampling"]["target"] == "qt"
-    assert s["comper_m"]["sampling"]["sample_calls"] >= 40
+    assert s["comper_m"]["sampling"]["sample_calls"] >= 40     # TM changes every step: one call per update
     assert "q_target" not in st["comper_m"]["learner"] and st["comper_m"]["qt_trainer"]["qt"]["version"] >= 2
     assert {"qt", "qt_predict"} <= ph["comper_m"]
 

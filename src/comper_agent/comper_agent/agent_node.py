@@ -35,7 +35,8 @@ from comper_msgs.msg import EpisodeSummary, TransitionBatch
 from comper_msgs.msg import QTModel as QTModelMsg
 from comper_msgs.srv import EnvInfo, GetStats, Reduce, Reset, Sample, Step, Store
 from comper_msgs_py.arrays import Transitions
-from comper_msgs_py.convert import array_to_numpy, numpy_to_array, transitions_to_batch
+from comper_msgs_py.convert import (array_to_numpy, batch_to_transitions, numpy_to_array, seq_to_numpy,
+                                    transitions_to_batch)
 from comper_msgs_py.params import config_to_dict, describe, param, spec_of
 from comper_msgs_py.ros_params import declare_config
 
@@ -101,6 +102,12 @@ class AgentRunConfig:
     publish_transitions: bool = param(
         True, "publish each finished training episode's transitions (with the labels stored) on "
         "~/transitions, before its ~/episodes summary, while someone subscribes (record:=true does)")
+    prefetch_batches: int = param(
+        32, "most update batches fetched from the memory in one sample call. Only the batches of the updates "
+        "before the next reduction are fetched (RTM does not change in between), each an independent uniform "
+        "draw, so the batches are those of one call per update; sampling from TM (while RTM is empty, or "
+        "COMPER-M) stays one call per update. 1 = one sample call per update",
+        thesis="one draw per update (Algorithms 7 and 8); same distribution", minimum=1)
     qt_wait_s: float = param(2.0, "after a reduction, seconds to wait for the QTModel of that version to "
                                   "arrive (variants with a QT target)", minimum=0.0)
     sim_node: str = param("sim_node", "name of the simulation node")
@@ -300,6 +307,8 @@ class AgentNode(Node):
         self.wall_offset = 0.0
         self.last_update: dict = {}
         self.last_reduce: dict = {}
+        self.sample_calls = 0
+        self.prefetched: list = []   # (batch, counts) drawn from the current RTM for the next updates, next last
 
     # ------------------------------------------------------------------------------ ROS callbacks
     def _on_qt_model(self, msg: QTModelMsg) -> None:
@@ -494,9 +503,35 @@ class AgentNode(Node):
         self.rtm_size, self.tm_sets = d["rtm_size"], d["tm_sets"]
         return d
 
+    def _next_batch(self, k: int, source: int, updates_before_reduce: int):
+        """(batch, counts) for the next update: a prefetched one, or one sample call that draws the
+        batches of min(prefetch_batches, updates_before_reduce) updates from RTM (one batch from TM).
+        None when the memory refuses (fewer entries than k: evictions, TM drained); the caller
+        refreshes its sizes. Callers clear ``prefetched`` when the RTM changes (a reduction)."""
+        if self.prefetched:
+            return self.prefetched.pop()
+        n = 1
+        if source == Sample.Request.SOURCE_RTM:
+            n = max(1, min(int(self.p.prefetch_batches), int(updates_before_reduce)))
+        with self.ptimers("memory"):
+            r = call(self.c_sample, Sample.Request(batch_size=int(k), source=source, seed=-1, num_batches=n),
+                     self.p.service_timeout_s, check=False)
+        if not r.success:
+            return None
+        with self.ptimers("convert"):
+            t = batch_to_transitions(r.batch, validate=False)
+            counts = seq_to_numpy(r.counts, np.uint32).copy()
+        self.sample_calls += 1
+        if n == 1:
+            return t, counts
+        self.prefetched = [(t.take(slice(i * k, (i + 1) * k)), counts[i * k:(i + 1) * k])
+                           for i in reversed(range(n))]
+        return self.prefetched.pop()
+
     def _reduce_call(self):
         """One ``<reducer>/reduce`` call (reduce_batch sets, qt_epochs): counters and last_reduce."""
         p = self.p
+        self.prefetched.clear()     # drawn from the RTM this reduction changes: not used
         r = call(self.c_reduce, Reduce.Request(max_sets=int(p.reduce_batch), epochs=int(p.qt_epochs)),
                  p.service_timeout_s)
         self.ptimers.add("qt_server" if self.reducer == "qt_trainer" else "memory_reduce_server", r.duration_s, 0)

@@ -86,11 +86,6 @@ class ComcactNodeConfig(AgentRunConfig):
         10, "DDPG updates between reductions (a reduction also runs whenever RTM is empty)",
         thesis="every iteration (1; Algorithm 8 line 27-28)", minimum=1,
         deviation="10, chosen by measurement (docs/comcact.md); -p reduce_every:=1 is the thesis's cadence")
-    prefetch_batches: int = param(
-        16, "most update batches fetched from the memory in one sample call. Only batches up to the next "
-        "reduction are fetched (RTM does not change in between), so each is the same uniform draw from RTM "
-        "that one call per update gives; 1 = one sample call per update",
-        thesis="one draw per update (Algorithm 8 line 14); same distribution", minimum=1)
     reduce_batch: int = param(50_000, "most sets popped from TM per reduction", thesis="50,000 (appendix B)",
                               minimum=0)
     qt_epochs: int = param(
@@ -162,7 +157,6 @@ class ComcactNode(AgentNode):
                                                action_out_of_range="clip", run_id=self.run_id))
         self.rng = np.random.default_rng(self.cfg.seed + 7)   # warm-up actions
         self.since_reduce = 0
-        self.prefetched: list[Transitions] = []   # update batches drawn from the current RTM, next last
         self.evals: list[dict] = []
         self.update_count = 0
 
@@ -318,14 +312,11 @@ class ComcactNode(AgentNode):
             self._store(t)
 
     def _sample(self) -> Transitions | None:
-        """The next update batch: from the batches prefetched since the last reduction, or one
-        sample call fetching the batches of every update up to the next reduction (at most
-        prefetch_batches; from TM, while RTM is empty, one at a time: TM changes every step)."""
-        if self.prefetched:
-            return self.prefetched.pop()
+        """The next update batch: from RTM (prefetched up to the next reduction, AgentNode._next_batch),
+        from TM while RTM is empty (Algorithm 8 lines 14-17)."""
         k = self.cfg.batch_size
         source = Sample.Request.SOURCE_RTM
-        if self.rtm_size <= 1:
+        if self.rtm_size <= 1 and not self.prefetched:
             with self.ptimers("memory"):
                 stats = self._get_stats()
             if self.rtm_size <= 1:
@@ -337,24 +328,14 @@ class ComcactNode(AgentNode):
         k = min(k, avail)
         if k < 2:
             return None
-        n = 1
-        if source == Sample.Request.SOURCE_RTM:
-            n = max(1, min(self.p.prefetch_batches, self.p.reduce_every - self.since_reduce))
-        with self.ptimers("memory"):
-            r = call(self.c_sample, Sample.Request(batch_size=k, source=source, seed=-1, num_batches=n),
-                     self.p.service_timeout_s, check=False)
-        if not r.success:    # RTM shrank (evictions): refresh its size next time
+        got = self._next_batch(k, source, self.p.reduce_every - self.since_reduce)
+        if got is None:      # RTM shrank (evictions): refresh its size next time
             self.rtm_size = 0
             return None
-        t = batch_to_transitions(r.batch)
-        if n == 1:
-            return t
-        self.prefetched = [t.take(slice(i * k, (i + 1) * k)) for i in reversed(range(n))]
-        return self.prefetched.pop()
+        return got[0]
 
     def _reduce(self) -> None:
         self._flush()               # every stored transition takes part in the reduction
-        self.prefetched.clear()     # batches drawn from the RTM before it changes are not used
         with self.ptimers("qt"):
             r = self._reduce_call()
             self.since_reduce = 0

@@ -303,7 +303,6 @@ class ComperNode(AgentNode):
         self.restore: Transitions | None = None
         self.set_counts: list[np.ndarray] = []
         self.last_stats: dict = {}
-        self.sample_calls = 0
 
     def _restore(self, state: dict) -> None:
         super()._restore(state)
@@ -523,27 +522,26 @@ class ComperNode(AgentNode):
                 self._wait_qt_model(r.qt_version)
 
     def _sample(self) -> tuple[Transitions, np.ndarray] | None:
+        """(batch, set sizes) for the next update: from RTM prefetched up to the next reduction
+        (AgentNode._next_batch), from TM (COMPER-M) one call per update."""
         k = self.cfg.batch_size
         if self.sample_source == Sample.Request.SOURCE_RTM:
             k = min(k, self.rtm_size)
         if k < 1:
             return None
-        with self.ptimers("memory"):
-            r = call(self.c_sample, Sample.Request(batch_size=k, source=self.sample_source, seed=-1),
-                     self.p.service_timeout_s, check=False)
-            if not r.success:     # fewer entries than asked (TM drained by a reduction, RTM evictions)
+        steps_left = self.p.reduce_every - (self.step - self.last_reduce_step)
+        got = self._next_batch(k, self.sample_source, max(1, -(-steps_left // self.cfg.train_frequency)))
+        if got is None:     # fewer entries than asked (TM drained by a reduction, RTM evictions)
+            with self.ptimers("memory"):
                 st = self._get_stats()
-                avail = st["tm_sets"] if self.sample_source == Sample.Request.SOURCE_TM else st["rtm_size"]
-                k = min(k, avail)
-                if k < 1:
-                    return None
-                r = call(self.c_sample, Sample.Request(batch_size=k, source=self.sample_source, seed=-1),
-                         self.p.service_timeout_s)
-        self.sample_calls += 1
-        with self.ptimers("convert"):
-            batch = batch_to_transitions(r.batch, validate=False)
-            counts = seq_to_numpy(r.counts, np.uint32).copy()
-        return batch, counts
+            avail = st["tm_sets"] if self.sample_source == Sample.Request.SOURCE_TM else st["rtm_size"]
+            k = min(k, avail)
+            if k < 1:
+                return None
+            got = self._next_batch(k, self.sample_source, 1)
+            if got is None:
+                return None
+        return got
 
     def _memory_record(self) -> None:
         if not self.uses_memory:
