@@ -75,16 +75,9 @@ def main(argv=None) -> int:
         t0 = time.monotonic()
         rets, lens = [], []
         for k in range(args.eval_episodes):
-            obs, _ = bridge.reset(eval_seed + k)
-            ret, n = 0.0, 0
-            while True:
-                a, _ = model.predict(np.asarray(obs, np.float32), deterministic=True)
-                res = bridge.step(np.asarray(a, np.float32))
-                ret += float(res.reward)
-                n += 1
-                obs = res.observation
-                if res.episode_over:
-                    break
+            ret, n, _ = bridge.play_episode(
+                lambda obs: np.asarray(model.predict(np.asarray(obs, np.float32), deterministic=True)[0],
+                                       np.float32), eval_seed + k)
             rets.append(ret)
             lens.append(n)
         eval_time[0] += time.monotonic() - t0

@@ -253,3 +253,18 @@ def test_deterministic_given_seed():
     rollout(b)
     o4, _ = rollout(b, seed=5)        # an explicit reseed reproduces the seed-5 run
     np.testing.assert_array_equal(o1, o4)
+
+
+def test_play_episode_runs_one_whole_episode_and_repeats_with_its_seed():
+    b = SimBridge(SimConfig(env_id="Pendulum-v1", seed=0, max_episode_steps=25))
+    seen = []
+
+    def policy(obs):
+        seen.append(obs)
+        return np.zeros(1, np.float32)
+    ret, n, last = b.play_episode(policy, seed=5)
+    assert n == 25 == len(seen) and last.episode_over and last.truncated and not last.terminated
+    assert ret < 0                                   # Pendulum rewards are costs
+    again = b.play_episode(lambda obs: np.zeros(1, np.float32), seed=5)
+    assert again[:2] == (ret, n)                     # same seed, same policy: same episode
+    b.close()

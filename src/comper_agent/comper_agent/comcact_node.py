@@ -79,7 +79,9 @@ class ComcactNodeConfig(AgentRunConfig):
         thesis="not given (Algorithm 8 acts with the policy from step 1)", minimum=0)
     store_every: int = param(
         10, "agent steps per memory store call (labels are computed when stored; an episode end and every "
-        "reduction flush first, so RTM and the sampled batches are the same as with 1)", thesis="every step",
+        "reduction flush first, so RTM and the sampled batches are the same as with 1). ddpg: the replay "
+        "gets the transitions in the same blocks (an update may not yet draw the newest <= 9 of them)",
+        thesis="every step",
         minimum=1, deviation="10: the labels of up to 9 transitions are computed a few updates later; one store "
         "call per 10 steps measured 31.0 -> 38.5 steps/s on Hopper-v4 (docs/comcact.md); 1 = the thesis")
     reduce_every: int = param(
@@ -383,16 +385,8 @@ class ComcactNode(AgentNode):
         rets, lens = [], []
         with self.ptimers("eval"):
             for k in range(p.eval_episodes):
-                obs, _ = self.eval_bridge.reset(self.eval_seed + k)
-                ret, n = 0.0, 0
-                while True:
-                    a = self.learner.act(np.asarray(obs, np.float32), explore=False)
-                    res = self.eval_bridge.step(a)
-                    ret += float(res.reward)
-                    n += 1
-                    obs = res.observation
-                    if res.episode_over:
-                        break
+                ret, n, res = self.eval_bridge.play_episode(
+                    lambda obs: self.learner.act(np.asarray(obs, np.float32), explore=False), self.eval_seed + k)
                 rets.append(ret)
                 lens.append(n)
                 ep = EpisodeSummary(run_id=self.run_id, env_id=p.env_id, source="eval", episode_id=k,

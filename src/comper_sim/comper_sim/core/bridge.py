@@ -246,6 +246,19 @@ class SimBridge:
                           episode_id=self.episode_id, episode_step=self.episode_step,
                           frames=self.episode_frames, episode_over=record is not None, episode=record)
 
+    def play_episode(self, policy, seed: int | None = None) -> tuple[float, int, StepResult]:
+        """One whole episode from reset(seed), each action policy(observation) (an evaluation
+        episode: nothing stored). Returns (return, steps, the last StepResult)."""
+        obs, _ = self.reset(seed)
+        ret, n = 0.0, 0
+        while True:
+            res = self.step(policy(obs))
+            ret += float(res.reward)
+            n += 1
+            obs = res.observation
+            if res.episode_over:
+                return ret, n, res
+
     def step_many(self, actions, autoreset: bool = True) -> StepManyResult:
         """Apply K actions; return the transitions taken. Without autoreset stepping stops at the
         end of the episode (fewer than K transitions)."""
