@@ -23,13 +23,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 from comper_agent.run_io import MetricsLog
+from learning_bench import claim_domain, release_domain   # one claim registry for every benchmark run
 
 import numpy as np
 
@@ -77,7 +77,6 @@ def run_all(args) -> None:
     todo = [(g, v, s) for g in args.games for v in args.variants for s in args.seeds
             if args.force or not (out / "runs" / run_id(g, v, s) / "summary.json").exists()]
     print(f"[bench] {len(todo)} runs to do, {args.parallel} at a time, {args.frames} frames each", flush=True)
-    base = random.SystemRandom().randint(20, 180)
     running: list[subprocess.Popen] = []
     done = 0
     last_report = time.monotonic()
@@ -85,13 +84,17 @@ def run_all(args) -> None:
     while todo or running:
         while todo and len(running) < args.parallel:
             g, v, s = todo.pop(0)
-            running.append(launch(args, g, v, s, base + i % 40))
+            dom = claim_domain()
+            p = launch(args, g, v, s, dom)
+            p.domain = dom
+            running.append(p)
             i += 1
         time.sleep(2.0)
         for p in list(running):
             if p.poll() is not None:
                 running.remove(p)
                 p.logf.close()
+                release_domain(p.domain)
                 done += 1
                 print(f"[bench] done {p.rid}: exit {p.returncode}, {time.monotonic() - p.t0:.0f} s "
                       f"({done} finished, {len(todo)} queued)", flush=True)

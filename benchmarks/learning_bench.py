@@ -88,20 +88,52 @@ def _spawn(base: Path, rid: str, cmd: list, domain: int, alg, task, seed) -> dic
     return {"rid": rid, "proc": p, "log": log, "t0": time.monotonic(), "alg": alg, "task": task, "seed": seed}
 
 
+DOMAIN_CLAIMS = Path(os.environ.get("TMPDIR", "/tmp")) / "comper-ros-domains"
+
+
+def claim_domain() -> int:
+    """A ROS_DOMAIN_ID in 101..231 that no other run on this machine holds (a claim file created with
+    O_EXCL; a claim whose process is gone is taken over). Nodes of two runs in one domain have the same
+    names and would answer each other's services."""
+    DOMAIN_CLAIMS.mkdir(parents=True, exist_ok=True)
+    for dom in random.SystemRandom().sample(range(101, 232), k=131):
+        path = DOMAIN_CLAIMS / str(dom)
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                os.kill(int(path.read_text() or 0), 0)
+                continue                      # held by a live process
+            except (ProcessLookupError, ValueError):
+                path.unlink(missing_ok=True)  # stale: its process is gone
+                try:
+                    fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+                except FileExistsError:
+                    continue
+            except PermissionError:
+                continue
+        os.write(fd, str(os.getpid()).encode())
+        os.close(fd)
+        return dom
+    raise RuntimeError(f"no free ROS domain id in 101..231 (claims in {DOMAIN_CLAIMS})")
+
+
+def release_domain(dom: int) -> None:
+    (DOMAIN_CLAIMS / str(dom)).unlink(missing_ok=True)
+
+
 def run_all(args, base: Path) -> None:
     jobs = [(a, t, s) for t in args.tasks for a in args.algorithms for s in range(args.seeds)]
     print(f"[bench] {len(jobs)} runs ({len(args.tasks)} tasks x {len(args.algorithms)} algorithms x "
           f"{args.seeds} seeds), {args.total_steps} steps each, {args.parallel} at a time; outputs in {base}",
           flush=True)
     running, done = [], 0
-    domains = random.SystemRandom().sample(range(101, 232), k=max(1, args.parallel) * 2)
     t_start = time.monotonic()
     last_status = 0.0
     while jobs or running:
         while jobs and len(running) < args.parallel:
             a, t, s = jobs.pop(0)
-            used = {r["domain"] for r in running}
-            dom = next(d for d in domains if d not in used)
+            dom = claim_domain()
             r = launch(args, base, a, t, s, dom)
             r["domain"] = dom
             running.append(r)
@@ -118,6 +150,7 @@ def run_all(args, base: Path) -> None:
                     rc = r["proc"].wait()
             if rc is not None:
                 r["log"].close()
+                release_domain(r["domain"])
                 running.remove(r)
                 done += 1
                 evals = MetricsLog.read(base / "runs" / r["rid"] / "metrics.jsonl", "eval", missing_ok=True)

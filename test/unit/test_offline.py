@@ -131,3 +131,9 @@ def test_q_vs_mc_and_fqe_with_a_checkpoint(tmp_path):
     assert 5 < res["mean_mc"] < 10.5
     f = offline.fitted_q_evaluation(pol, t, gamma=0.9, updates=300)
     assert np.isfinite(f["fqe_value"]) and f["initial_states"] > 0
+    # nets without batch norm, action after the second hidden layer: rebuilt from the checkpoint alone
+    for kw in ({"batch_norm": False}, {"batch_norm": False, "critic_action_input": "output"}):
+        plain = ComcactLearner(DDPGConfig(actor_hidden=[32, 16], critic_hidden=[32, 16], **kw), 4, [-1, -1], [1, 1])
+        p2 = save_checkpoint(tmp_path / "plain.pt", {"learner": plain.state_dict(), "counters": {"step": 0}})
+        np.testing.assert_allclose(offline.load_policy(p2).q_values(t.states[:20], t.actions[:20]),
+                                   plain.q_values(t.states[:20], t.actions[:20]).reshape(-1), rtol=1e-5, atol=1e-6)

@@ -448,18 +448,19 @@ def load_policy(path: str | os.PathLike) -> Policy:
     learner = state.get("learner", state)
     if "actor" in learner and "critic" in learner:
         a, c = learner["actor"], learner["critic"]
-        obs_dim = int(a["body.0.weight"].shape[0])
+        bn = "body.0.weight" in a         # batch_norm false: nn.Identity in the norms' places
+        obs_dim = int(a["body.1.weight"].shape[1])
         hidden, i = [], 1
         while f"body.{i}.weight" in a:
             hidden.append(int(a[f"body.{i}.weight"].shape[0]))
             i += 3
         center, half = a["action_center"].numpy(), a["action_half_range"].numpy()
-        actor = Actor(obs_dim, center - half, center + half, hidden)
+        actor = Actor(obs_dim, center - half, center + half, hidden, batch_norm=bn)
         actor.load_state_dict(a)
         h1, h2 = int(c["fc1.weight"].shape[0]), int(c["fc2.weight"].shape[0])
-        mode = "output" if "bn2.weight" in c else "second_hidden"
+        mode = "second_hidden" if int(c["fc2.weight"].shape[1]) > h1 else "output"
         act_dim = (int(c["fc2.weight"].shape[1]) - h1) if mode == "second_hidden" else int(c["out.weight"].shape[1]) - h2
-        critic = Critic(obs_dim, act_dim, (h1, h2), action_input=mode)
+        critic = Critic(obs_dim, act_dim, (h1, h2), action_input=mode, batch_norm=bn)
         critic.load_state_dict(c)
         actor.eval()
         critic.eval()

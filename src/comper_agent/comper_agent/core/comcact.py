@@ -43,9 +43,9 @@ class ComcactLearner:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(c.seed)
             self.actor = Actor(obs_dim, self.action_low, self.action_high, c.actor_hidden,
-                               c.actor_final_init).to(self.device)
+                               c.actor_final_init, c.batch_norm).to(self.device)
             self.critic = Critic(obs_dim, self.action_dim, c.critic_hidden, c.critic_final_init,
-                                 c.critic_action_input).to(self.device)
+                                 c.critic_action_input, c.batch_norm).to(self.device)
         self.actor_target = copy.deepcopy(self.actor)
         self.critic_target = copy.deepcopy(self.critic)
         for net in (self.actor, self.critic, self.actor_target, self.critic_target):

@@ -121,6 +121,9 @@ class ComcactConfig:
                                     thesis="400, 300 (appendix B)")
     critic_hidden: list[int] = param([400, 300], "critic hidden layers (ReLU)",
                                      thesis="400, 300 (appendix B)")
+    batch_norm: bool = param(
+        True, "batch normalisation of the state input and the hidden layers of actor and critic (false = "
+        "plain MLPs, as Stable-Baselines3 / CleanRL DDPG)", thesis="yes (appendix B)")
     critic_action_input: str = param(
         "second_hidden", "where the action enters the critic: second_hidden = concatenated to the "
         "(batch-normalised) first hidden layer's output, the input of the second hidden layer "

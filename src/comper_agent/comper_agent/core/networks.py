@@ -3,7 +3,8 @@
 Initialisation: hidden layers keep torch's default (U(+-1/sqrt(fan_in)) for weights and biases,
 the fan-in initialisation of Lillicrap et al. 2016); output layers as the thesis gives them.
 
-Batch normalisation (DDPG): ``nn.BatchNorm1d`` with torch defaults (momentum 0.1, eps 1e-5).
+Batch normalisation (DDPG): ``nn.BatchNorm1d`` with torch defaults (momentum 0.1, eps 1e-5);
+``batch_norm=False`` puts ``nn.Identity`` in its places (the plain MLP of most DDPG code).
 Learners put a network in train mode (batch statistics, running stats updated) only inside an
 update; acting, value labels and target computation run in eval mode (running statistics), so a
 transition's action / value does not depend on the rest of its batch.
@@ -29,16 +30,17 @@ class Actor(nn.Module):
     scaled to [low, high] per action dimension."""
 
     def __init__(self, obs_dim: int, action_low, action_high, hidden=(400, 300),
-                 final_init: float = 3e-3):
+                 final_init: float = 3e-3, batch_norm: bool = True):
         super().__init__()
         low = torch.as_tensor(action_low, dtype=torch.float32).reshape(-1)
         high = torch.as_tensor(action_high, dtype=torch.float32).reshape(-1)
         self.register_buffer("action_center", (high + low) / 2)
         self.register_buffer("action_half_range", (high - low) / 2)
-        layers: list[nn.Module] = [nn.BatchNorm1d(obs_dim)]
+        norm = nn.BatchNorm1d if batch_norm else (lambda n: nn.Identity())
+        layers: list[nn.Module] = [norm(obs_dim)]
         d = obs_dim
         for h in hidden:
-            layers += [nn.Linear(d, h), nn.ReLU(), nn.BatchNorm1d(h)]
+            layers += [nn.Linear(d, h), nn.ReLU(), norm(h)]
             d = h
         self.body = nn.Sequential(*layers)
         self.out = nn.Linear(d, low.numel())
@@ -61,19 +63,20 @@ class Critic(nn.Module):
     """
 
     def __init__(self, obs_dim: int, action_dim: int, hidden=(400, 300), final_init: float = 3e-4,
-                 action_input: str = "second_hidden"):
+                 action_input: str = "second_hidden", batch_norm: bool = True):
         super().__init__()
         h1, h2 = hidden
         self.action_input = action_input
-        self.bn0 = nn.BatchNorm1d(obs_dim)
+        norm = nn.BatchNorm1d if batch_norm else (lambda n: nn.Identity())
+        self.bn0 = norm(obs_dim)
         self.fc1 = nn.Linear(obs_dim, h1)
-        self.bn1 = nn.BatchNorm1d(h1)
+        self.bn1 = norm(h1)
         if action_input == "second_hidden":
             self.fc2 = nn.Linear(h1 + action_dim, h2)
             self.out = nn.Linear(h2, 1)
         elif action_input == "output":
             self.fc2 = nn.Linear(h1, h2)
-            self.bn2 = nn.BatchNorm1d(h2)
+            self.bn2 = norm(h2)
             self.out = nn.Linear(h2 + action_dim, 1)
         else:
             raise ValueError(f"unknown critic action_input {action_input!r}")
