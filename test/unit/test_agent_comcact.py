@@ -135,7 +135,8 @@ def test_architecture_matches_appendix_b():
     assert lrn.critic.fc2.in_features == 400 + ACT
     assert learner(critic_action_input="output").critic.out.in_features == 300 + ACT
     assert lrn.actor_opt.param_groups[0]["lr"] == 1e-3 and lrn.critic_opt.param_groups[0]["lr"] == 2e-3
-    assert sum(isinstance(m, torch.nn.BatchNorm1d) for m in lrn.actor.modules()) == 3
+    assert not any(isinstance(m, torch.nn.BatchNorm1d) for m in lrn.actor.modules())   # default: plain MLPs
+    assert sum(isinstance(m, torch.nn.BatchNorm1d) for m in learner(batch_norm=True).actor.modules()) == 3
     plain = learner(batch_norm=False)
     assert not any(isinstance(m, torch.nn.BatchNorm1d) for m in [*plain.actor.modules(), *plain.critic.modules()])
     assert [l.out_features for l in plain.actor.modules() if isinstance(l, torch.nn.Linear)] == [400, 300, ACT]
