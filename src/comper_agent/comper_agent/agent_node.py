@@ -507,7 +507,7 @@ class AgentNode(Node):
         """(batch, counts) for the next update: a prefetched one, or one sample call that draws the
         batches of min(prefetch_batches, updates_before_reduce) updates from RTM (one batch from TM).
         None when the memory refuses (fewer entries than k: evictions, TM drained); the caller
-        refreshes its sizes. Callers clear ``prefetched`` when the RTM changes (a reduction)."""
+        refreshes its sizes. ``_reduce_call`` drops what is left when the RTM changes."""
         if self.prefetched:
             return self.prefetched.pop()
         n = 1

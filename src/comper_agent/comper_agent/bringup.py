@@ -17,11 +17,12 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-__all__ = ["ServiceError", "Spinner", "default_executor", "call", "wait_for_services", "make_embedded_nodes",
+from comper_msgs_py.ros_main import default_executor
+
+__all__ = ["ServiceError", "Spinner", "call", "wait_for_services", "make_embedded_nodes",
            "EmbeddedNodes", "START_HINTS"]
 
 START_HINTS = {
@@ -81,15 +82,6 @@ def wait_for_services(clients: dict, timeout: float, hints: dict | None = None,
         time.sleep(0.05)
 
 
-def default_executor(node: Node, context):
-    """The executor a node is spun by in a Spinner: the node's own ``make_executor(context)`` if it
-    has one (the QT trainer needs several threads: it calls the memory from its reduce callback),
-    else a SingleThreadedExecutor (measured: rclpy's MultiThreadedExecutor doubles the round trip
-    of a service call, 4.9 vs 2.3 ms per sim step; benchmarks/transport_bench.py)."""
-    make = getattr(node, "make_executor", None)
-    return make(context) if callable(make) else SingleThreadedExecutor(context=context)
-
-
 class Spinner:
     """Spins each node with its own executor (:func:`default_executor`) in its own daemon thread,
     so the learner loop can run in the main thread and wait on service futures, and a node that is
@@ -98,6 +90,7 @@ class Spinner:
     def __init__(self, nodes: list[Node], context):
         self.context = context
         self._pairs: list[tuple] = []
+        self._started = False
         self.error: BaseException | None = None
         for n in nodes:
             self.add_node(n)
@@ -113,7 +106,7 @@ class Spinner:
         ex.add_node(node)
         th = threading.Thread(target=self._spin, args=(ex,), name=f"spin-{node.get_name()}", daemon=True)
         self._pairs.append((ex, th))
-        if getattr(self, "_started", False):
+        if self._started:
             th.start()
 
     def start(self) -> "Spinner":

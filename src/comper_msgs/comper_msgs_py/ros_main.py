@@ -14,7 +14,15 @@ from typing import Callable
 import rclpy
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 
-__all__ = ["serve_node"]
+__all__ = ["serve_node", "default_executor"]
+
+
+def default_executor(node, context=None) -> Executor:
+    """The executor a node is spun by: its own ``make_executor(context)`` if it has one (nodes with
+    nested service calls need several threads), else a SingleThreadedExecutor (rclpy's
+    MultiThreadedExecutor costs ~1.6x per service round trip here: benchmarks/transport_bench.py)."""
+    make = getattr(node, "make_executor", None)
+    return make(context) if callable(make) else SingleThreadedExecutor(context=context)
 
 
 def serve_node(make_node: Callable[[], object], name: str, args=None, *,
@@ -38,12 +46,7 @@ def serve_node(make_node: Callable[[], object], name: str, args=None, *,
             return 1
         if on_ready is not None:
             on_ready(node)
-        if executor_for is not None:
-            executor = executor_for(node)
-        elif callable(getattr(node, "make_executor", None)):
-            executor = node.make_executor()
-        else:
-            executor = SingleThreadedExecutor()
+        executor = executor_for(node) if executor_for is not None else default_executor(node)
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -125,7 +125,7 @@ class ComcactConfig:
         False, "batch normalisation of the state input and the hidden layers of actor and critic (false = "
         "plain MLPs, as Stable-Baselines3 / CleanRL DDPG)", thesis="yes (appendix B)",
         deviation="off: with batch norm our DDPG solved InvertedPendulum-v4 (>= 950) by 20,000 steps in 0 of 3 "
-        "seeds (two collapsed to a saturated policy), without it in 2 of 2 finished seeds, as Stable-Baselines3 "
+        "seeds (two collapsed to a saturated policy), without it in 3 of 3, as Stable-Baselines3 "
         "DDPG (no batch norm) in 3 of 3 (docs/comcact.md, session 2); -p batch_norm:=true is appendix B")
     critic_action_input: str = param(
         "second_hidden", "where the action enters the critic: second_hidden = concatenated to the "

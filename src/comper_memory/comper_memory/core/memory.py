@@ -626,12 +626,8 @@ class CompactMemory:
             if self.schema is None:
                 raise MemoryInputError("sample: the memory is empty")
             rng = rng if rng is not None else np.random.default_rng(seed)
-            if k == 0:
-                idx = np.zeros(0, np.int64)
-            elif nb == 1:
-                idx = rng.choice(ds.n, size=k, replace=False)
-            else:
-                idx = np.concatenate([rng.choice(ds.n, size=k, replace=False) for _ in range(nb)])
+            idx = (np.concatenate([rng.choice(ds.n, size=k, replace=False) for _ in range(nb)]) if k
+                   else np.zeros(0, np.int64))
             slots = ds.items[idx]
             labels = self.a["rtm_pred"][slots] if source == "rtm" else self._newest_labels(slots)
             return SampleResult(self._reps(slots, labels), self.a["id"][slots].copy(),
