@@ -123,7 +123,8 @@ def release_domain(dom: int) -> None:
 
 
 def run_all(args, base: Path) -> None:
-    jobs = [(a, t, s) for t in args.tasks for a in args.algorithms for s in range(args.seeds)]
+    # seed-major: a sweep stopped early still holds every (task, algorithm) for the first seeds
+    jobs = [(a, t, s) for s in range(args.seeds) for t in args.tasks for a in args.algorithms]
     print(f"[bench] {len(jobs)} runs ({len(args.tasks)} tasks x {len(args.algorithms)} algorithms x "
           f"{args.seeds} seeds), {args.total_steps} steps each, {args.parallel} at a time; outputs in {base}",
           flush=True)

@@ -10,7 +10,10 @@ overhead: an agent-like publisher loop (per step a fixed amount of CPU work cali
 topic contract's QoS) runs the same number of steps with and without a recorder_node process;
 the throughput ratio is the recording cost (target <= 5 %). --step-work-ms 0 is the stress case
 (publishing as fast as rclpy can). With --agent-cmd the command itself is the agent (run to
-completion with and without the recorder; wall time compared).
+completion with and without the recorder; wall time compared). With --agent-cmd and
+--record-param the agent records itself (``-p record:=false`` / ``-p record:=true`` appended,
+alternating, each run in its own run directory) and the training loop's own steps/s (the run's
+``timers`` record in metrics.jsonl, start-up excluded) is compared: the user's real set-up.
 
 evaluate: writes a synthetic 50,000-step run's bag (as the recorder writes it) and times
 ``evaluate`` on it, plots included (target <= 10 s), in-process and through ``ros2 run``.
@@ -111,6 +114,8 @@ def publisher_loop(node, topics, steps: int, work_n: int, seed: int = 0) -> dict
 
 
 def overhead(args) -> dict:
+    if args.agent_cmd and args.record_param:
+        return overhead_record_param(args)
     if args.agent_cmd:
         return overhead_agent_cmd(args)
     import rclpy
@@ -196,6 +201,42 @@ def overhead_agent_cmd(args) -> dict:
     return out
 
 
+def overhead_record_param(args) -> dict:
+    """The agent command with record:=false / record:=true alternating; steps/s from each run's timers."""
+    rates = {"with": [], "without": []}
+    bag_mb = []
+    tmp = Path(tempfile.mkdtemp(prefix="recbench_"))
+    try:
+        for rep in range(args.reps):
+            for mode in ("without", "with"):
+                run_id = f"rep{rep}-{mode}"
+                cmd = shlex.split(args.agent_cmd)
+                if "--ros-args" not in cmd:
+                    cmd.append("--ros-args")
+                cmd += ["-p", f"record:={'true' if mode == 'with' else 'false'}", "-p", f"runs_root:={tmp}",
+                        "-p", f"run_id:={run_id}"]
+                subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                timers = [json.loads(line) for line in (tmp / run_id / "metrics.jsonl").read_text().splitlines()
+                          if '"timers"' in line]
+                if not timers:
+                    raise RuntimeError(f"{tmp / run_id}: no timers record in metrics.jsonl")
+                rates[mode].append(float(timers[-1]["steps_per_s"]))
+                if mode == "with":
+                    bag_mb.append(sum(f.stat().st_size for f in (tmp / run_id / "bag").rglob("*") if f.is_file())
+                                  / 2**20)
+                print(f"  rep {rep} {mode:8s}: {rates[mode][-1]:.2f} steps/s", flush=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    w, wo = statistics.median(rates["with"]), statistics.median(rates["without"])
+    spread = 100.0 * (max(rates["without"]) - min(rates["without"])) / wo
+    out = {"mode": "record_param", "cmd": args.agent_cmd, "without_steps_per_s": wo, "with_steps_per_s": w,
+           "overhead_pct": 100.0 * (1 - w / wo), "spread_without_pct": spread, "all": rates,
+           "bag_mb_per_run": statistics.median(bag_mb) if bag_mb else 0.0}
+    print(f"median training throughput without {wo:.2f}, with record:=true {w:.2f} steps/s: overhead "
+          f"{out['overhead_pct']:.2f} % (target <= 5 %); spread of the runs without recording {spread:.1f} %")
+    return out
+
+
 def evaluate_time(args) -> dict:
     from comper_agent.evaluate import evaluate
     from comper_agent.offline import synthetic_run
@@ -252,11 +293,12 @@ def plot(results: dict, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     ov = results.get("overhead")
-    if ov and ov["mode"] == "publisher_loop":
+    if ov and ov["mode"] in ("publisher_loop", "record_param"):
         axes[0].bar(["without recorder", "with recorder"], [ov["without_steps_per_s"], ov["with_steps_per_s"]],
                     color=["tab:gray", "tab:blue"])
         axes[0].set(ylabel="agent steps/s (median)",
-                    title=f"publisher loop, {ov['step_work_ms']} ms/step: overhead {ov['overhead_pct']:.2f} %")
+                    title=(f"publisher loop, {ov['step_work_ms']} ms/step" if ov["mode"] == "publisher_loop"
+                           else "agent, record:=false / true") + f": overhead {ov['overhead_pct']:.2f} %")
     ev = results.get("evaluate")
     if ev:
         names = ["in-process", "ros2 run"] + (["+ checkpoint"] if "evaluate_checkpoint_s" in ev else [])
@@ -278,6 +320,8 @@ def main(argv=None) -> int:
                    help="CPU work per agent step, calibrated alone (default 5 ms = 200 steps/s, COMCACT-like; 0 = stress)")
     p.add_argument("--reps", type=int, default=2, help="repetitions of each mode (median reported)")
     p.add_argument("--agent-cmd", help="measure this agent command (run to completion) instead of the publisher loop")
+    p.add_argument("--record-param", action="store_true",
+                   help="with --agent-cmd: toggle the agent's own record:= parameter and compare its steps/s")
     p.add_argument("--eval-steps", type=int, default=50000, help="steps of the synthetic run for evaluate (default 50000)")
     p.add_argument("--checkpoint", action="store_true", help="also time evaluate --checkpoint (DDPG-size networks)")
     p.add_argument("--out", default="/tmp/recording_bench", help="folder for the plot and results.json")

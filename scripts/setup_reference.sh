@@ -10,7 +10,9 @@ DEST="${COMPER_CACHE:-$HOME/.cache/comper}/reference-sb3-$SB3_VERSION"
 if [ -d "$DEST/stable_baselines3" ]; then
   echo "[reference] stable-baselines3 $SB3_VERSION already in $DEST"; exit 0
 fi
+set +u  # colcon's local_setup.bash reads unset variables
 . ./env.sh
+set -u
 # --no-deps: its dependencies (torch, gymnasium, numpy) are the venv's; cloudpickle is the one extra
 python -m pip install --quiet --no-deps --target "$DEST.tmp" "stable-baselines3==$SB3_VERSION" \
   "cloudpickle==$CLOUDPICKLE_VERSION"
