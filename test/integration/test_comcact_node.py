@@ -6,6 +6,7 @@ import os
 import signal
 import time
 
+import pytest
 import torch
 
 from comper_agent import run_io
@@ -110,16 +111,21 @@ def test_ddpg_variant_checkpoint_and_resume_continue_the_step_count(launch, tmp_
     assert _evals(tmp_path, "dd") == [0, 100, 200, 300]          # appended in the same run directory
 
 
-def test_record_parameter_writes_a_bag_that_reproduces_the_training_returns(launch, tmp_path):
-    """record:=true: the in-process recorder bags the run; the bag's episode returns equal those
-    the node logged, every training episode's transitions are in it, and evaluate reads it."""
+@pytest.mark.parametrize("where", ["child", "in_process"])
+def test_record_parameter_writes_a_bag_that_reproduces_the_training_returns(launch, tmp_path, where):
+    """record:=true: the recorder (a child process by default, or in-process) bags the run; the bag's
+    episode returns equal those the node logged, every training episode's transitions are in it,
+    and evaluate reads it."""
     from comper_agent import offline
 
     proc = launch("comper_agent", "comcact_node",
                   *_args(tmp_path, "rec", "-p", "algorithm:=ddpg", "-p", "total_steps:=400", "-p", "warmup_steps:=150",
                          "-p", "eval_every:=200", "-p", "eval_episodes:=2", "-p", "record:=true",
-                         "-p", "transport_probe_calls:=0"), name="rec")
+                         "-p", f"record_process:={where}", "-p", "transport_probe_calls:=0"), name="rec")
     assert _wait(proc, 240) == 0, proc.log()[-4000:]
+    if where == "child":
+        rec_log = (tmp_path / "rec" / "recorder.log").read_text()
+        assert "bag closed" in rec_log and "Traceback" not in rec_log, rec_log
     logged = [(r["episode"], r["ret"], r["length"])
               for r in run_io.MetricsLog.read(tmp_path / "rec" / "metrics.jsonl", "episode") if r["source"] == "train"]
     assert len(logged) >= 3
@@ -130,3 +136,36 @@ def test_record_parameter_writes_a_bag_that_reproduces_the_training_returns(laun
     check = offline.cross_check(run)
     assert check["checked"] == len(logged) and not check["mismatches"] and check["missing"] == 0
     assert [p.global_step for p in run.evaluations] == [0, 200, 400]
+
+
+def test_sigkill_of_the_agent_leaves_a_closed_bag_with_every_logged_episode(launch, tmp_path):
+    """record_process:=child: SIGKILL of the agent makes the kernel send SIGTERM to the recorder
+    process (PR_SET_PDEATHSIG), which writes what it holds and closes the bag."""
+    from comper_agent import offline
+
+    proc = launch("comper_agent", "comcact_node",
+                  *_args(tmp_path, "killed", "-p", "algorithm:=ddpg", "-p", "total_steps:=100000",
+                         "-p", "warmup_steps:=100000", "-p", "eval_every:=0", "-p", "record:=true"), name="killed")
+    metrics = tmp_path / "killed" / "metrics.jsonl"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        if metrics.exists() and len(run_io.MetricsLog.read(metrics, "episode")) >= 30:
+            break
+        assert proc.proc.poll() is None, proc.log()[-4000:]
+        time.sleep(0.5)
+    log = proc.log()
+    pid = int(log.split("recorder process (pid ")[1].split(",")[0])
+    proc.proc.send_signal(signal.SIGKILL)
+    proc.proc.wait(timeout=10)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and os.path.exists(f"/proc/{pid}") and \
+            open(f"/proc/{pid}/stat").read().split()[2] != "Z":
+        time.sleep(0.2)
+    rec_log = (tmp_path / "killed" / "recorder.log").read_text()
+    assert "bag closed" in rec_log, rec_log
+    logged = [(r["episode"], r["ret"], r["length"])
+              for r in run_io.MetricsLog.read(metrics, "episode") if r["source"] == "train"]
+    (run,) = offline.read_runs([tmp_path / "killed"]).values()
+    bagged = [(e.episode_id, e.episode_return, e.length) for e in run.train_episodes()]
+    # every episode the agent logged (it logs after publishing) is in the bag, bar one in flight at the kill
+    assert len(logged) >= 30 and bagged[:len(logged) - 1] == logged[:-1]

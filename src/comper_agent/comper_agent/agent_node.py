@@ -16,8 +16,11 @@
 """
 from __future__ import annotations
 
+import ctypes
 import dataclasses
+import json
 import math
+import os
 import signal
 import sys
 import threading
@@ -97,8 +100,14 @@ class AgentRunConfig:
     tensorboard: bool = param(True, "write TensorBoard scalars to <run dir>/tb")
     record: bool = param(
         False, "record this run's topics (transitions, episodes, evaluations, memory stats, sim episodes) "
-        "into a rosbag2 bag in <run dir>/bag with an in-process recorder_node (docs/recording.md)")
+        "into a rosbag2 bag in <run dir>/bag with a recorder_node (docs/recording.md)")
     record_storage: str = param("mcap", "bag storage when record is on", choices=("mcap", "sqlite3"))
+    record_process: str = param(
+        "child", "where record:=true runs its recorder_node: 'child' = a child process (its work runs on "
+        "another core; the agent waits until it has subscribed, hands every message over before stopping it, "
+        "and if the agent dies, even by SIGKILL, the recorder gets SIGTERM and closes the bag; its log is "
+        "<run dir>/recorder.log), 'in_process' = a node on this process's executor (one process; costs "
+        "~4-5 percent of the training throughput on Hopper-v4, docs/recording.md)", choices=("child", "in_process"))
     publish_transitions: bool = param(
         True, "publish each finished training episode's transitions (with the labels stored) on "
         "~/transitions, before its ~/episodes summary, while someone subscribes (record:=true does)")
@@ -240,30 +249,105 @@ class AgentNode(Node):
                 qt_name=p.qt_trainer_node if self.reducer == "qt_trainer" else None,
                 qt_params={"memory_node": p.memory_node, "reduce_batch": int(p.reduce_batch), **qt})
             nodes += self.embedded.all
-        if p.record:
+        self.recorder_proc = None
+        if p.record and p.record_process == "in_process":
             nodes.append(self._make_recorder(self.run_id))
+        try:
+            if p.record and p.record_process == "child":
+                self._start_recorder_process(self.run_id)
+        except BaseException:
+            if self.embedded is not None:
+                self.embedded.destroy()
+            raise
         self.spinner = Spinner(nodes, self.context).start()
         try:
+            if self.recorder_proc is not None:
+                self._wait_recorder_subscribed()
             self._connect()
         except BaseException:
             self.shutdown()
             raise
+
+    def _record_topics(self) -> list[str]:
+        """The topics record:=true bags: this node's contract topics, the sim's episodes, memory stats."""
+        me = self.get_fully_qualified_name()
+        topics = [f"{me}/transitions", f"{me}/episodes", f"{me}/evaluations",
+                  f"/{self.p.sim_node.strip('/')}/episodes"]
+        if self.uses_memory:
+            topics.append(f"/{self.p.memory_node.strip('/')}/stats")
+        return topics
+
+    def _recorder_params(self, run_id: str) -> dict:
+        return {"run_id": run_id, "algorithm": self.p.algorithm, "output_dir": str(self.run_dir.path.parent),
+                "storage": self.p.record_storage, "topics": self._record_topics()}
 
     def _make_recorder(self, run_id: str) -> Node:
         """An in-process recorder_node bagging this run's topics into <run dir>/bag."""
         from rclpy.parameter import Parameter
 
         from .recorder_node import RecorderNode
-        me = self.get_fully_qualified_name()
-        topics = [f"{me}/transitions", f"{me}/episodes", f"{me}/evaluations",
-                  f"/{self.p.sim_node.strip('/')}/episodes"]
-        if self.uses_memory:
-            topics.append(f"/{self.p.memory_node.strip('/')}/stats")
         self.recorder = RecorderNode(context=self.context, parameter_overrides=[
-            Parameter("run_id", value=run_id), Parameter("algorithm", value=self.p.algorithm),
-            Parameter("output_dir", value=str(self.run_dir.path.parent)),
-            Parameter("storage", value=self.p.record_storage), Parameter("topics", value=topics)])
+            Parameter(k, value=v) for k, v in self._recorder_params(run_id).items()])
         return self.recorder
+
+    def _start_recorder_process(self, run_id: str) -> None:
+        """record_process:=child: recorder_node as a child process (started before this process's
+        executor threads; _wait_recorder_subscribed waits for it)."""
+        import subprocess
+        topics = self._record_topics()
+        self._subscribers_before = {t: self.count_subscribers(t) for t in topics}
+        cmd = [sys.executable, "-m", "comper_agent.recorder_node", "--ros-args",
+               "-r", f"__node:={self.get_name()}_recorder"]
+        for k, v in self._recorder_params(run_id).items():
+            cmd += ["-p", f"{k}:={json.dumps(v)}"]   # JSON is YAML: strings stay strings, lists lists
+        log_path = self.run_dir.file("recorder.log")
+        with open(log_path, "ab") as log:
+            # own session: a terminal's Ctrl-C reaches the agent only, which hands over and stops the
+            # recorder; PR_SET_PDEATHSIG: the recorder gets SIGTERM when the agent dies (even SIGKILL)
+            self.recorder_proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy(),
+                                                  start_new_session=True, preexec_fn=_die_with_parent)
+
+    def _wait_recorder_subscribed(self) -> None:
+        """Return once the recorder process has subscribed to every recorded topic (the first episode
+        must not be published before)."""
+        before, log_path = self._subscribers_before, self.run_dir.file("recorder.log")
+        topics = list(before)
+        deadline = time.monotonic() + self.p.startup_timeout_s
+        while any(self.count_subscribers(t) <= before[t] for t in topics):
+            rc = self.recorder_proc.poll()
+            if rc is not None:
+                tail = log_path.read_text(errors="replace")[-2000:]
+                raise RuntimeError(f"the recorder process exited with {rc} before subscribing; {log_path}:\n{tail}")
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the recorder process did not subscribe to {topics} within "
+                                   f"startup_timeout_s={self.p.startup_timeout_s:g} s (see {log_path})")
+            time.sleep(0.02)
+        self.log.info(f"recording into {self.run_dir.path / 'bag'} by a recorder process (pid "
+                      f"{self.recorder_proc.pid}, log {log_path})")
+
+    def _stop_recorder_process(self) -> None:
+        """Wait until the recorder has every message this process published on the recorded topics
+        (reliable QoS acknowledgements), then stop it (SIGINT: it takes what it still holds and closes
+        the bag)."""
+        from rclpy.duration import Duration
+        proc, self.recorder_proc = self.recorder_proc, None
+        topics = set(self._record_topics())
+        nodes = [self] + (list(self.embedded.all) if self.embedded is not None else [])
+        for node in nodes:
+            for pub in node.publishers:
+                if pub.topic_name in topics:
+                    try:
+                        pub.wait_for_all_acked(Duration(seconds=5.0))
+                    except Exception:   # a destroyed publisher or a shut-down context: nothing to wait for
+                        pass
+        proc.send_signal(signal.SIGINT)
+        try:
+            rc = proc.wait(timeout=30.0)
+        except Exception:
+            proc.kill()
+            rc = proc.wait()
+        if rc != 0:
+            self.log.error(f"the recorder process ended with {rc}; see {self.run_dir.file('recorder.log')}")
 
     def _connect(self) -> None:
         """Service clients; wait for the services; check the sim's task."""
@@ -577,6 +661,11 @@ class AgentNode(Node):
 
     # ------------------------------------------------------------------------------ shutdown
     def shutdown(self) -> None:
+        if getattr(self, "recorder_proc", None) is not None:
+            try:
+                self._stop_recorder_process()
+            except Exception as exc:
+                self.log.error(f"stopping the recorder process failed: {exc}")
         try:
             self.spinner.stop()
         except Exception:
@@ -608,6 +697,18 @@ class AgentNode(Node):
         lines += ["", "In the embedded bring-up, command-line parameters also reach the embedded sim, memory "
                   "and QT trainer nodes that declare them (docs/sim.md, docs/memory.md, docs/comcact.md)."]
         return "\n".join(lines)
+
+
+try:   # loaded here, not in the forked child (no imports between fork and exec)
+    _LIBC = ctypes.CDLL(None, use_errno=True) if sys.platform.startswith("linux") else None
+except OSError:
+    _LIBC = None
+
+
+def _die_with_parent() -> None:
+    """preexec_fn of the recorder process: SIGTERM when the parent (the agent) dies (Linux prctl)."""
+    if _LIBC is not None:
+        _LIBC.prctl(1, int(signal.SIGTERM))   # PR_SET_PDEATHSIG = 1
 
 
 def run_main(node_cls: type, name: str, args=None) -> int:

@@ -88,6 +88,7 @@ class RecorderNode(Node):
         self._closed = False
         self._group = MutuallyExclusiveCallbackGroup()
         self._subs: dict[str, object] = {}
+        self._handles: dict[str, int] = {}        # topic -> bag writer handle
         self._pending: dict[str, str | None] = {}   # topic -> msgtype (None: to discover)
         for spec in c.topics:
             name, msgtype = parse_topic_spec(spec)
@@ -123,6 +124,7 @@ class RecorderNode(Node):
     def _subscribe(self, name: str, msgtype: str) -> None:
         qos, offered = self._qos_for(name, msgtype)
         handle = self.writer.add_topic(name, msgtype, offered)
+        self._handles[name] = handle
         cls = _msg_class(msgtype)
         self._subs[name] = self.create_subscription(
             cls, name, lambda data, h=handle: self._on_message(h, data), qos,
@@ -169,8 +171,26 @@ class RecorderNode(Node):
     def messages_recorded(self) -> int:
         return self.writer.stats.messages
 
+    def drain(self) -> int:
+        """Write what the subscriptions hold but the executor has not dispatched yet (messages that
+        arrived just before a stop); returns how many."""
+        n = 0
+        for name, sub in list(self._subs.items()):
+            while True:
+                try:
+                    with sub.handle:
+                        got = sub.handle.take_message(sub.msg_type, sub.raw)
+                except Exception:   # destroyed handle or shut-down context: nothing more to take
+                    break
+                if got is None:
+                    break
+                self._on_message(self._handles[name], got[0])
+                n += 1
+        return n
+
     def close(self) -> None:
-        """Close the bag (idempotent). Call before destroy_node."""
+        """Take the messages still queued, then close the bag (idempotent). Call before destroy_node."""
+        drained = self.drain() if not self._closed else 0
         with self._lock:
             if self._closed:
                 return
@@ -179,7 +199,7 @@ class RecorderNode(Node):
         s = self.writer.stats
         self.get_logger().info(
             f"bag closed: {self.bag_path} ({s.messages} messages, {s.bytes / 2**20:.1f} MB, "
-            f"{s.files_closed} file(s); per topic {s.topic_counts})")
+            f"{s.files_closed} file(s); per topic {s.topic_counts}; {drained} taken at close)")
 
     def destroy_node(self):
         self.close()
@@ -244,7 +264,7 @@ def main(args=None) -> int:
         for f, default, _ in spec_of(RecorderConfig):
             print(f"  {f.name} (default {default!r}): {describe(f)}")
         return 0
-    return serve_node(RecorderNode, "recorder_node", args, on_close=lambda node: node.close())
+    return serve_node(RecorderNode, "recorder_node", args, on_close=lambda node: node.close(), graceful=True)
 
 
 if __name__ == "__main__":

@@ -6,13 +6,20 @@
 rclpy.init, construct the node (a failure is one readable `cannot start: ...` line and exit 1,
 not a traceback), spin it on the executor chosen for it until Ctrl-C / SIGTERM / shutdown, then
 close and destroy it and exit 0.
+
+``graceful=True`` (the recorder): rclpy's own signal handlers are not installed (they shut the
+context down at once); SIGINT / SIGTERM only end the spin loop, so ``on_close`` still runs with a
+valid context and can take what the subscriptions hold (nothing received is dropped at a stop).
 """
 from __future__ import annotations
 
+import signal
+import threading
 from typing import Callable
 
 import rclpy
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 
 __all__ = ["serve_node", "default_executor"]
 
@@ -28,15 +35,22 @@ def default_executor(node, context=None) -> Executor:
 def serve_node(make_node: Callable[[], object], name: str, args=None, *,
                executor_for: Callable[[object], Executor] | None = None,
                on_ready: Callable[[object], None] | None = None,
-               on_close: Callable[[object], None] | None = None) -> int:
+               on_close: Callable[[object], None] | None = None, graceful: bool = False) -> int:
     """Run one node as a process: 0 on Ctrl-C / SIGTERM, 1 when it cannot start.
 
     executor_for(node) makes the executor; by default the node's own ``make_executor()`` if it
     has one (nodes with nested service calls need a multi-threaded one), else a
     SingleThreadedExecutor. on_ready(node) runs before spinning (e.g. torch
-    thread settings); on_close(node) after spinning, before destroy_node (e.g. a final flush).
+    thread settings); on_close(node) after spinning, before destroy_node (e.g. a final flush);
+    graceful: see the module docstring.
     """
-    rclpy.init(args=args)
+    stop = threading.Event()
+    if graceful:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    else:
+        rclpy.init(args=args)
     node = executor = None
     try:
         try:
@@ -48,7 +62,11 @@ def serve_node(make_node: Callable[[], object], name: str, args=None, *,
             on_ready(node)
         executor = executor_for(node) if executor_for is not None else default_executor(node)
         executor.add_node(node)
-        executor.spin()
+        if graceful:
+            while not stop.is_set() and rclpy.ok(context=node.context):
+                executor.spin_once(timeout_sec=0.1)
+        else:
+            executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
