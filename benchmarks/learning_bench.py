@@ -50,6 +50,10 @@ def parse_args(argv=None):
                     help="extra parameters for every run, e.g. --ros-args -p reduce_every:=1 (must come last)")
     ap.add_argument("--timeout-s", type=float, default=6 * 3600, help="kill a run after this many seconds")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the tables/plots from <out>/<tag>")
+    ap.add_argument("--include", nargs="+", default=[], metavar="RESULTS_JSON",
+                    help="results.json files of earlier sweeps (e.g. docs/results/learning/*.json, kept in git): "
+                         "their runs join this table and the plots (a sweep split over several sessions or "
+                         "machines); runs of this sweep win on the same run id")
     return ap.parse_args(argv)
 
 
@@ -187,6 +191,19 @@ def report(args, base: Path) -> dict:
                 results["runs"][rid] = {"task": t, "algorithm": a, "seed": s,
                                         "evals": [(e["step"], e["mean_return"], e["std_return"]) for e in evals],
                                         "timers": timers[-1] if timers else None}
+    tasks, algorithms = list(args.tasks), list(args.algorithms)
+    for inc in args.include:
+        prev = json.loads(Path(inc).read_text())
+        if prev["total_steps"] != args.total_steps or prev["eval_every"] != args.eval_every:
+            print(f"[bench] {inc}: {prev['total_steps']} steps / eval every {prev['eval_every']}, not "
+                  f"{args.total_steps} / {args.eval_every}: not included", flush=True)
+            continue
+        for rid, r in prev["runs"].items():
+            if r["evals"] and not (rid in results["runs"] and results["runs"][rid]["evals"]):
+                results["runs"][rid] = r
+                tasks += [r["task"]] if r["task"] not in tasks else []
+                algorithms += [r["algorithm"]] if r["algorithm"] not in algorithms else []
+    args.tasks, args.algorithms = tasks, algorithms
     steps = [x for x in args.report_steps if x <= args.total_steps] or [args.total_steps]
     lines = [f"| task | algorithm | seeds | " + " | ".join(f"return @ {x:,}" for x in steps) + " | steps/s |",
              "|---|---|---|" + "---|" * len(steps) + "---|"]
