@@ -169,3 +169,21 @@ def test_sigkill_of_the_agent_leaves_a_closed_bag_with_every_logged_episode(laun
     bagged = [(e.episode_id, e.episode_return, e.length) for e in run.train_episodes()]
     # every episode the agent logged (it logs after publishing) is in the bag, bar one in flight at the kill
     assert len(logged) >= 30 and bagged[:len(logged) - 1] == logged[:-1]
+
+
+def test_reduce_overlap_reduces_while_learning(launch, tmp_path):
+    """reduce_overlap:=true: the reductions are sent and collected while the learner goes on; every
+    one is collected (none left in flight at the end), QT is trained and checkpointed."""
+    proc = launch("comper_agent", "comcact_node",
+                  *_args(tmp_path, "ov", "-p", "total_steps:=400", "-p", "eval_every:=0", "-p", "reduce_every:=5",
+                         "-p", "reduce_overlap:=true"), name="ov")
+    assert _wait(proc, 240) == 0, proc.log()[-4000:]
+    run = tmp_path / "ov"
+    state = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)["state"]
+    ph = run_io.MetricsLog.read(run / "metrics.jsonl", "timers")[-1]["phases"]
+    # the first reduction (RTM empty) is synchronous ('qt'); the rest were overlapped and collected
+    assert ph["qt"]["calls"] == 1
+    collected = ph.get("reduce_collect", {"calls": 0})["calls"] + ph.get("reduce_wait", {"calls": 0})["calls"]
+    assert collected >= 30 and state["counters"]["reductions"] == collected + 1
+    assert state["qt_trainer"]["qt"]["version"] >= collected
+    assert state["learner"]["qt_steps"] > 0

@@ -44,7 +44,7 @@ from comper_msgs_py.params import config_to_dict, describe, param, spec_of
 from comper_msgs_py.ros_params import declare_config
 
 from . import run_io
-from .bringup import START_HINTS, ServiceError, Spinner, call, make_embedded_nodes, wait_for_services
+from .bringup import START_HINTS, PendingCall, ServiceError, Spinner, call, make_embedded_nodes, wait_for_services
 from .qt_trainer_node import QT_MODEL_QOS, msg_to_qt
 
 __all__ = ["AgentNode", "AgentRunConfig", "run_main", "redefault", "episode_over", "SUMMARY_QOS",
@@ -117,6 +117,14 @@ class AgentRunConfig:
         "draw, so the batches are those of one call per update; sampling from TM (while RTM is empty, or "
         "COMPER-M) stays one call per update. 1 = one sample call per update",
         thesis="one draw per update (Algorithms 7 and 8); same distribution", minimum=1)
+    reduce_overlap: bool = param(
+        False, "send each reduction and go on learning (acting, updates from the current RTM, targets from the "
+        "current QT) while the QT trainer and the memory reduce, on the other core; at most one reduction in "
+        "flight (the next one waits for it), the first (RTM empty) is waited for; the new RTM and QT are used "
+        "from the step their answer arrives (variants that reduce)",
+        thesis="the agent waits for each reduction (Algorithms 7 and 8: reduce, then learn)",
+        deviation="on = updates between a reduction's request and its answer use the RTM and QT of the "
+        "previous reduction")
     qt_wait_s: float = param(2.0, "after a reduction, seconds to wait for the QTModel of that version to "
                                   "arrive (variants with a QT target)", minimum=0.0)
     sim_node: str = param("sim_node", "name of the simulation node")
@@ -393,6 +401,7 @@ class AgentNode(Node):
         self.last_reduce: dict = {}
         self.sample_calls = 0
         self.prefetched: list = []   # (batch, counts) drawn from the current RTM for the next updates, next last
+        self.reduce_pending: PendingCall | None = None   # reduce_overlap: the reduction in flight
 
     # ------------------------------------------------------------------------------ ROS callbacks
     def _on_qt_model(self, msg: QTModelMsg) -> None:
@@ -488,6 +497,11 @@ class AgentNode(Node):
             elapsed = time.monotonic() - self.t_start
             if self.stop_event.is_set():
                 self.log.info(f"stop requested at step {self.step}")
+            if self.reduce_pending is not None:     # its RTM and QT belong in the final checkpoint
+                try:
+                    self._reduce_collect(wait=True)
+                except ServiceError as exc:
+                    self.log.error(f"the reduction in flight did not finish: {exc}")
             self._final_records(rc)
             try:
                 self.save(final=True)
@@ -613,11 +627,40 @@ class AgentNode(Node):
         return self.prefetched.pop()
 
     def _reduce_call(self):
-        """One ``<reducer>/reduce`` call (reduce_batch sets, qt_epochs): counters and last_reduce."""
+        """One blocking ``<reducer>/reduce`` call (reduce_batch sets, qt_epochs): counters, last_reduce."""
+        return self._reduce_finish(self._reduce_send())
+
+    def _reduce_send(self) -> PendingCall:
         p = self.p
-        self.prefetched.clear()     # drawn from the RTM this reduction changes: not used
-        r = call(self.c_reduce, Reduce.Request(max_sets=int(p.reduce_batch), epochs=int(p.qt_epochs)),
-                 p.service_timeout_s)
+        return PendingCall(self.c_reduce, Reduce.Request(max_sets=int(p.reduce_batch), epochs=int(p.qt_epochs)))
+
+    def _reduce_overlapped(self) -> bool:
+        """reduce_overlap: wait for the reduction in flight (if any), send the next one and return True (the
+        caller goes on learning). False = reduce synchronously (overlap off, or RTM still empty)."""
+        self._reduce_collect(wait=True)          # at most one in flight
+        if not self.p.reduce_overlap or self.rtm_size == 0:
+            return False
+        self.reduce_pending = self._reduce_send()
+        return True
+
+    def _reduce_collect(self, wait: bool):
+        """Finish the overlapped reduction if it has answered (wait: block until it has); its response, or
+        None. Calls the node's ``_after_reduce(response)``."""
+        pending = self.reduce_pending
+        if pending is None or not (wait or pending.done()):
+            return None
+        self.reduce_pending = None
+        with self.ptimers("reduce_wait" if not pending.done() else "reduce_collect"):
+            r = self._reduce_finish(pending)
+        self._after_reduce(r)
+        return r
+
+    def _after_reduce(self, r) -> None:
+        """Hook: after each reduction's answer (metrics)."""
+
+    def _reduce_finish(self, pending: PendingCall):
+        r = pending.result(self.p.service_timeout_s)
+        self.prefetched.clear()     # drawn from the RTM this reduction changed: not used
         self.ptimers.add("qt_server" if self.reducer == "qt_trainer" else "memory_reduce_server", r.duration_s, 0)
         self.rtm_size = int(r.rtm_size)
         self.reductions += 1

@@ -22,7 +22,7 @@ from rclpy.parameter import Parameter
 
 from comper_msgs_py.ros_main import default_executor
 
-__all__ = ["ServiceError", "Spinner", "call", "wait_for_services", "make_embedded_nodes",
+__all__ = ["ServiceError", "Spinner", "PendingCall", "call", "wait_for_services", "make_embedded_nodes",
            "EmbeddedNodes", "START_HINTS"]
 
 START_HINTS = {
@@ -36,28 +36,44 @@ class ServiceError(RuntimeError):
     """A service call failed: unavailable, timed out, refused (success false) or interrupted."""
 
 
+class PendingCall:
+    """A service call in flight, made from a non-spinning thread (the node is spun elsewhere):
+    ``done()`` polls, ``result(timeout)`` waits for the answer."""
+
+    def __init__(self, client, request, what: str | None = None):
+        self.client = client
+        self.name = what or client.srv_name
+        self._done = threading.Event()
+        self.future = client.call_async(request)
+        self.future.add_done_callback(lambda _f: self._done.set())
+
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    def result(self, timeout: float = 60.0, *, check: bool = True):
+        """The response; ServiceError on timeout, cancellation, an exception, or (check) success false."""
+        name, future = self.name, self.future
+        if not self._done.wait(timeout):
+            self.client.remove_pending_request(future)
+            raise ServiceError(f"{name}: no answer within {timeout:g} s (is the node still running?)")
+        if future.cancelled():
+            raise ServiceError(f"{name}: the call was cancelled (shutting down?)")
+        exc = future.exception()
+        if exc is not None:
+            raise ServiceError(f"{name}: {type(exc).__name__}: {exc}")
+        response = future.result()
+        if response is None:
+            raise ServiceError(f"{name}: no response (context shut down?)")
+        if check and hasattr(response, "success") and not response.success:
+            raise ServiceError(f"{name} refused: {response.message}")
+        return response
+
+
 def call(client, request, timeout: float = 60.0, *, what: str | None = None, check: bool = True):
     """Blocking call from a non-spinning thread; the node must be spun by an executor elsewhere.
 
     check: raise ServiceError when the response has ``success == False`` (with its message)."""
-    name = what or client.srv_name
-    done = threading.Event()
-    future = client.call_async(request)
-    future.add_done_callback(lambda _f: done.set())
-    if not done.wait(timeout):
-        client.remove_pending_request(future)
-        raise ServiceError(f"{name}: no answer within {timeout:g} s (is the node still running?)")
-    if future.cancelled():
-        raise ServiceError(f"{name}: the call was cancelled (shutting down?)")
-    exc = future.exception()
-    if exc is not None:
-        raise ServiceError(f"{name}: {type(exc).__name__}: {exc}")
-    response = future.result()
-    if response is None:
-        raise ServiceError(f"{name}: no response (context shut down?)")
-    if check and hasattr(response, "success") and not response.success:
-        raise ServiceError(f"{name} refused: {response.message}")
-    return response
+    return PendingCall(client, request, what).result(timeout, check=check)
 
 
 def wait_for_services(clients: dict, timeout: float, hints: dict | None = None,

@@ -338,15 +338,18 @@ class ComcactNode(AgentNode):
 
     def _reduce(self) -> None:
         self._flush()               # every stored transition takes part in the reduction
+        self.since_reduce = 0
+        if self._reduce_overlapped():   # reduce_overlap: learning goes on; _reduce_collect finishes it
+            return
         with self.ptimers("qt"):
             r = self._reduce_call()
-            self.since_reduce = 0
             if self.p.qt_targets == "local" and r.qt_version > 0:
                 self._wait_qt_model(r.qt_version)
 
     # ------------------------------------------------------------------------------ learning
     def _train_step(self) -> None:
         if self.comcact:
+            self._reduce_collect(wait=False)      # reduce_overlap: a reduction that has answered
             batch = self._sample()
             if batch is None:
                 return

@@ -512,14 +512,19 @@ class ComperNode(AgentNode):
         return torch.backends.mkldnn.flags(enabled=False)
 
     def _reduce(self) -> None:
+        self.last_reduce_step = self.step
+        if self._reduce_overlapped():   # reduce_overlap: learning goes on; _reduce_collect finishes it
+            return
         with self.ptimers("qt" if self.reducer == "qt_trainer" else "memory_reduce"), self._lstm_backend():
             r = self._reduce_call()
-        self.last_reduce_step = self.step
-        self.metrics.write("reduce", step=self.step, frames=self.frames, rtm_size=self.rtm_size,
-                           **self.last_reduce)
+        self._after_reduce(r)
         if self.uses_qt and r.qt_version > 0:
             with self.ptimers("qt_wait"), self._lstm_backend():
                 self._wait_qt_model(r.qt_version)
+
+    def _after_reduce(self, r) -> None:
+        self.metrics.write("reduce", step=self.step, frames=self.frames, rtm_size=self.rtm_size,
+                           **self.last_reduce)
 
     def _sample(self) -> tuple[Transitions, np.ndarray] | None:
         """(batch, set sizes) for the next update: from RTM prefetched up to the next reduction
@@ -571,6 +576,7 @@ class ComperNode(AgentNode):
                 self.last_update = self.learner.update(batch)
         else:
             self._flush(with_restore=True)
+            self._reduce_collect(wait=False)      # reduce_overlap: a reduction that has answered
             if self.rtm_size == 0 or self.step - self.last_reduce_step >= p.reduce_every:
                 self._reduce()
             got = self._sample()
