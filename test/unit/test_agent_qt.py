@@ -151,3 +151,25 @@ def test_rejects_bad_input():
         qt.predict(np.zeros((2, 4), np.float32))
     with pytest.raises(ValueError):
         qt.fit(np.zeros((2, 3), np.float32), np.array([1.0, np.nan], np.float32), np.ones(2, np.uint32))
+
+
+def test_native_lstm_equals_torch_lstm_with_the_same_parameters():
+    """NativeLSTM (QT's LSTM, independent of the oneDNN flag) = nn.LSTM: outputs, states, gradients."""
+    import torch
+    from torch import nn
+
+    from comper_agent.core.qt import NativeLSTM
+    torch.manual_seed(3)
+    ref = nn.LSTM(37, 8, batch_first=True)
+    nat = NativeLSTM(37, 8, batch_first=True)
+    nat.load_state_dict(ref.state_dict())                # same parameter names and shapes
+    x = torch.randn(5, 4, 37)
+    with torch.backends.mkldnn.flags(enabled=False):
+        out_r, (h_r, c_r) = ref(x)
+    out_n, (h_n, c_n) = nat(x)
+    for a, b in ((out_r, out_n), (h_r, h_n), (c_r, c_n)):
+        assert a.shape == b.shape and torch.allclose(a, b, atol=1e-6)
+    (out_r ** 2).sum().backward()
+    (out_n ** 2).sum().backward()
+    for p, q in zip(ref.parameters(), nat.parameters()):
+        assert torch.allclose(p.grad, q.grad, atol=1e-5)

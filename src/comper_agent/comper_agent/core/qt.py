@@ -101,6 +101,36 @@ def history_windows(label_history: np.ndarray, history_lengths: np.ndarray, leng
     return labels.astype(np.float32), present
 
 
+class NativeLSTM(nn.LSTM):
+    """nn.LSTM (one layer, unidirectional, batch_first; same parameters and state_dict) computed
+    with plain matrix products: the input projection of all steps in one product, then the L
+    recurrent steps. Why: torch routes nn.LSTM to oneDNN's RNN kernel whenever the process-wide
+    oneDNN flag is on (the Nature CNN wants it on), and that kernel is several times slower for
+    QT's 14114-wide COMPER input on this CPU; this path does not depend on the flag, so QT can train
+    on one thread while the CNN learns on another (reduce_overlap). Other configurations fall back
+    to nn.LSTM. Same result as nn.LSTM up to float32 rounding (tested)."""
+
+    def forward(self, x, hx=None):
+        if (self.num_layers != 1 or self.bidirectional or self.proj_size or not self.batch_first
+                or not isinstance(x, torch.Tensor) or x.dim() != 3):
+            return super().forward(x, hx)
+        b, steps, _ = x.shape
+        bias = self.bias_ih_l0 + self.bias_hh_l0 if self.bias else None
+        gx = nn.functional.linear(x, self.weight_ih_l0, bias)          # [B, L, 4H]
+        if hx is None:
+            h = x.new_zeros(b, self.hidden_size)
+            c = x.new_zeros(b, self.hidden_size)
+        else:
+            h, c = hx[0][0], hx[1][0]
+        outs = []
+        for t in range(steps):                                          # gate order i, f, g, o
+            i, f, g, o = (gx[:, t] + nn.functional.linear(h, self.weight_hh_l0)).chunk(4, 1)
+            c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+            h = torch.sigmoid(o) * torch.tanh(c)
+            outs.append(h)
+        return torch.stack(outs, 1), (h.unsqueeze(0), c.unsqueeze(0))
+
+
 class QTNetwork(nn.Module):
     """Stacked LSTMs (tanh) -> Dense ReLU -> Dense 1 (linear or tanh).
 
@@ -111,7 +141,7 @@ class QTNetwork(nn.Module):
                  output_activation: str = "linear", output_init: float = 0.0):
         super().__init__()
         sizes = [in_dim] + list(lstm_units)
-        self.lstms = nn.ModuleList(nn.LSTM(sizes[i], sizes[i + 1], batch_first=True)
+        self.lstms = nn.ModuleList(NativeLSTM(sizes[i], sizes[i + 1], batch_first=True)
                                    for i in range(len(lstm_units)))
         self.dense = nn.Linear(sizes[-1], dense_units)
         self.out = nn.Linear(dense_units, 1)
