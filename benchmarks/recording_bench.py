@@ -229,11 +229,17 @@ def overhead_record_param(args) -> dict:
         shutil.rmtree(tmp, ignore_errors=True)
     w, wo = statistics.median(rates["with"]), statistics.median(rates["without"])
     spread = 100.0 * (max(rates["without"]) - min(rates["without"])) / wo
+    # paired: each rep's with-run follows its without-run, so slow drifts of the machine cancel
+    paired = [100.0 * (1 - a / b) for a, b in zip(rates["with"], rates["without"])]
+    pm = statistics.mean(paired)
+    pse = statistics.stdev(paired) / len(paired) ** 0.5 if len(paired) > 1 else float("nan")
     out = {"mode": "record_param", "cmd": args.agent_cmd, "without_steps_per_s": wo, "with_steps_per_s": w,
            "overhead_pct": 100.0 * (1 - w / wo), "spread_without_pct": spread, "all": rates,
+           "paired_overhead_pct": paired, "paired_mean_pct": pm, "paired_se_pct": pse,
            "bag_mb_per_run": statistics.median(bag_mb) if bag_mb else 0.0}
     print(f"median training throughput without {wo:.2f}, with record:=true {w:.2f} steps/s: overhead "
-          f"{out['overhead_pct']:.2f} % (target <= 5 %); spread of the runs without recording {spread:.1f} %")
+          f"{out['overhead_pct']:.2f} % (target <= 5 %); spread of the runs without recording {spread:.1f} %; "
+          f"paired per rep: {', '.join(f'{x:.1f}' for x in paired)} % -> mean {pm:.2f} +- {pse:.2f} % (standard error)")
     return out
 
 

@@ -25,7 +25,7 @@ COMCACT = {**_COMMON, "algorithm": "comcact", "env_id": "InvertedPendulum-v4", "
            "checkpoint_every": 0, "progress_period_s": 5.0}
 COMPER = {**_COMMON, "algorithm": "comper", "env_id": "ALE/Freeway-v5", "total_frames": 100_000, "max_steps": 0,
           "reduce_every": 100, "reduce_batch": 1_000, "qt_epochs": 0, "qt_targets": "local", "qt_wait_s": 5.0,
-          "reducer": "auto", "qt_onednn": False, "restore_batch": True, "store_every": 4, "stats_every": 1_000,
+          "reducer": "auto", "restore_batch": True, "store_every": 4, "stats_every": 1_000,
           "checkpoint_every": 5_000, "progress_period_s": 10.0}
 
 

@@ -104,11 +104,6 @@ class ComperNodeConfig(AgentRunConfig):
         "auto", "who reduces TM into RTM: qt_trainer (<qt_trainer_node>/reduce, trains QT) | memory "
         "(<memory_node>/reduce, newest label as prediction, no QT) | auto = memory for comper_f (it does "
         "not use QT), qt_trainer otherwise", choices=("auto", "qt_trainer", "memory"))
-    qt_onednn: bool = param(
-        False, "let torch use oneDNN (mkldnn) for QT's LSTM while this node waits for a reduction and "
-        "predicts QT targets; off = torch's native LSTM, measured 5x faster for the 14114-input LSTM on "
-        "this CPU (while oneDNN stays on for the CNN, where it is 2x faster). Affects the embedded QT "
-        "trainer only (external: the trainer process's own setting). Speed only")
     restore_batch: bool = param(True, "re-store each updated batch with fresh labels (thesis 4.1.1; "
                                       "method.md 4)")
     store_every: int = param(4, "before learning starts / between updates: steps per store call (an update "
@@ -501,25 +496,15 @@ class ComperNode(AgentNode):
             call(self.c_store, req, self.p.service_timeout_s)
 
     # ------------------------------------------------------------------------------ memory
-    def _lstm_backend(self):
-        """Context for QT's LSTM work: oneDNN off unless qt_onednn (global torch flag; safe because the
-        learner thread is blocked on the reduction meanwhile and no other node here runs torch)."""
-        import contextlib
-
-        import torch
-        if self.p.qt_onednn:
-            return contextlib.nullcontext()
-        return torch.backends.mkldnn.flags(enabled=False)
-
     def _reduce(self) -> None:
         self.last_reduce_step = self.step
         if self._reduce_overlapped():   # reduce_overlap: learning goes on; _reduce_collect finishes it
             return
-        with self.ptimers("qt" if self.reducer == "qt_trainer" else "memory_reduce"), self._lstm_backend():
+        with self.ptimers("qt" if self.reducer == "qt_trainer" else "memory_reduce"):
             r = self._reduce_call()
         self._after_reduce(r)
         if self.uses_qt and r.qt_version > 0:
-            with self.ptimers("qt_wait"), self._lstm_backend():
+            with self.ptimers("qt_wait"):
                 self._wait_qt_model(r.qt_version)
 
     def _after_reduce(self, r) -> None:
@@ -596,7 +581,7 @@ class ComperNode(AgentNode):
                                          "publishing on qt_model?)", throttle_duration_sec=10.0)
                         return
                     from comper_memory.core import transition_keys
-                    with self.ptimers("qt_predict"), self._lstm_backend():
+                    with self.ptimers("qt_predict"):
                         targets = qt.predict_transitions(batch, transition_keys)
             with self.ptimers("learner"):
                 self.last_update = self.learner.update(batch, targets)
