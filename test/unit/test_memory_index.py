@@ -249,3 +249,38 @@ def test_index_engine_parameter_selects_the_engine_and_decisions_agree(engine, c
     assert type(mem.index).__name__ == cls_name
     assert res.new_identities == 300
     np.testing.assert_array_equal(res.identity_ids[300:], res.identity_ids[:100])
+
+
+def test_grid_filter_dims_cut_exact_rechecks_and_stay_exact(monkeypatch):
+    """Frames that differ along many directions (two bright pixels each, as sprites do) pile up in
+    the cells of a 3-d projection; filtering on 8 projected coordinates leaves far fewer exact
+    re-checks, and decisions equal the brute-force reference either way."""
+    checked = []
+    orig = index_mod.GridIndex.resolve
+
+    def spy(self, *args, **kwargs):
+        res = orig(self, *args, **kwargs)
+        checked.append(res.candidates_checked)
+        return res
+
+    monkeypatch.setattr(index_mod.GridIndex, "resolve", spy)
+    rng = np.random.default_rng(21)
+    n, side = 600, 12
+    s = np.full((n, side, side), 40, np.uint8)
+    for _ in range(2):
+        s.reshape(n, -1)[np.arange(n), rng.integers(0, side * side, n)] = rng.integers(100, 256, n)
+    t = Transitions(s, np.zeros(n, np.int64), np.zeros(n, np.float32), s.copy(), np.zeros(n, bool),
+                    np.zeros(n, bool), value_labels=np.zeros(n, np.float32))
+    per_dims = {}
+    for dims in (3, 8):
+        checked.clear()
+        mem = CompactMemory(MemoryConfig(delta=1e-4, index_projection_dim=dims, index_min_train=64))
+        ref = Reference(1e-4)
+        for lo in range(0, n, 50):
+            part = t.take(np.arange(lo, lo + 50))
+            again = t.take(rng.integers(0, lo + 50, 20))  # re-stores join their own identity
+            for batch in (part, again):
+                np.testing.assert_array_equal(mem.store(batch).identity_ids, ref.store(batch))
+        assert mem.index.mf == dims
+        per_dims[dims] = sum(checked[::2])  # the batches of new frames: nothing to find but exact copies
+    assert per_dims[8] * 3 < per_dims[3], per_dims

@@ -61,8 +61,8 @@ class MemoryConfig:
     index_projection_dim: int = param(
         8, "dimensions of the orthonormal projection the exact index partitions on "
         "(|P(x - y)| <= |x - y|, so no similar pair is missed; larger = fewer exact re-checks, "
-        "more memory); the grid engine (default) uses min(3, this) PCA directions, the faiss IVF "
-        "engine this many", minimum=1, maximum=256)
+        "more memory); the grid engine (default) partitions on min(3, this) PCA directions and "
+        "filters candidates on min(this, 64), the faiss IVF engine uses this many", minimum=1, maximum=256)
     index_min_train: int = param(
         2048, "identities before the index fits its partition to the data (grid: PCA directions and "
         "extent; IVF: k-means lists, one list below)",

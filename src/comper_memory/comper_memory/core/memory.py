@@ -201,7 +201,8 @@ class CompactMemory:
         if engine == "grid":
             self.index = GridIndex(key, c.delta, keys_of=self._index_keys, alive=self._index_alive,
                                    live_ids=lambda: self.ids_sorted,
-                                   grid_dims=min(3, c.index_projection_dim), min_train=c.index_min_train,
+                                   grid_dims=min(3, c.index_projection_dim),
+                                   filter_dims=c.index_projection_dim, min_train=c.index_min_train,
                                    rebuild_growth=c.index_rebuild_growth, seed=c.index_seed)
         else:
             self.index = ExactIndex(key, c.delta, projection_dim=c.index_projection_dim,
