@@ -407,13 +407,15 @@ class GridIndex:
       projection lies within the conservative mf-d radius of ``_radius_proj`` (|P(x - y)| <=
       |x - y| (1 + e_o) holds for all mf coordinates together). With 3 coordinates, keys that
       vary along many directions (Atari frames) pile up in few cells; 8 coordinates cut the exact
-      re-checks on real Freeway transitions from ~24 per query at 5,000 identities to ~0.05.
+      re-checks on real Freeway transitions from ~24 per stored transition at 5,000 identities to
+      ~1 (the re-stores' own identities): benchmarks/memory_atari_bench.py.
     * Every candidate that is still alive is re-checked against its full key in float64
       (``exact_sq_dist``); the grid only decides which identities are looked at.
 
-    Storage: two sorted levels (code int64, id int64, projection mf float32): a large main level and a small level that
-    new identities are inserted into (``np.insert``, O(small)); the small level is merged into
-    the main one when it exceeds main/16 (amortised O(1) per identity). Removal is lazy: evicted
+    Storage: two sorted levels (code int64, id int64, projection mf float32): a large main level
+    and a small level that new identities are inserted into (``np.insert``, O(small)); the small
+    level is merged into the main one when it exceeds main/16 (amortised O(1) per identity).
+    Removal is lazy: evicted
     ids stay as stale entries (ids are never reused, and candidates are filtered with
     ``alive``) until a rebuild, which happens when stale entries exceed a quarter of the
     entries, when identities grew ``rebuild_growth``-fold since the last build (re-fitting the
