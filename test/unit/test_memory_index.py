@@ -284,3 +284,23 @@ def test_grid_filter_dims_cut_exact_rechecks_and_stay_exact(monkeypatch):
         assert mem.index.mf == dims
         per_dims[dims] = sum(checked[::2])  # the batches of new frames: nothing to find but exact copies
     assert per_dims[8] * 3 < per_dims[3], per_dims
+
+
+def test_grid_top_corner_cells_are_found():
+    """Keys whose projections clip to the largest cell index on every axis (a first batch with a
+    huge coordinate fixes the grid's extent, later keys lie beyond it): their code is the largest
+    one, and the end of its code range must not wrap around int64. Decisions equal the reference."""
+    def batch(base, n=32, seed=0):
+        rng = np.random.default_rng(seed)
+        s = rng.normal(size=(n, 6)).astype(np.float32)
+        s[:, 0] = (base + np.arange(n)).astype(np.float32)
+        return Transitions(s, rng.uniform(-1, 1, (n, 2)).astype(np.float32), rng.normal(size=n).astype(np.float32),
+                           rng.normal(size=(n, 6)).astype(np.float32), np.zeros(n, bool), np.zeros(n, bool),
+                           value_labels=np.zeros(n, np.float32))
+
+    for sign in (1.0, -1.0):
+        mem, ref = CompactMemory(MemoryConfig(delta=1e-4)), Reference(1e-4)
+        parts = [batch(sign * 2e6, seed=1), batch(sign * 1e6, seed=2), batch(sign * 5e5, seed=3)]
+        for t in parts + parts:                      # the second pass re-stores every transition
+            np.testing.assert_array_equal(mem.store(t).identity_ids, ref.store(t))
+        assert mem.stats()["identities"] == 96

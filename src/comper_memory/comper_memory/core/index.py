@@ -367,7 +367,10 @@ class ExactIndex:
 
 # ====================================================================== grid engine
 _GRID_BITS = 21
-_GRID_MAX = (1 << _GRID_BITS) - 1
+# Largest cell index: one below 2^21 - 1, so the largest code (all axes at _GRID_MAX) plus one, the
+# exclusive end of a code range in _lookup, still fits in int64 (at 2^21 - 1 it wrapped to a
+# negative number and queries in the top corner of the grid found nothing: session 4).
+_GRID_MAX = (1 << _GRID_BITS) - 2
 _EPS64 = float(np.finfo(np.float64).eps)
 _PAIR_CHUNK = 1 << 21  # candidate pairs expanded at once (bounds temporary memory)
 
@@ -397,7 +400,7 @@ class GridIndex:
     * Cells are cubes of side c >= (r (1 + e_o) + err)(1 + 1e-7): two points within r have
       cell indices floor((z - o)/c) that differ by at most 1 per axis (the relative rounding of
       the division, < 1e-9 cells, is far below the 1e-7 margin). Indices are clipped to
-      [0, 2^21 - 1] (monotone, 1-Lipschitz: neighbours stay neighbours), so c can also be
+      [0, 2^21 - 2] (monotone, 1-Lipschitz: neighbours stay neighbours), so c can also be
       made coarse enough for any delta, 0 included.
     * A cell's code packs its m indices (21 bits each, lexicographic), so the 3 cells along the
       last axis of each (m-1)-neighbour column are one contiguous code range: a query costs 3^(m-1)
@@ -486,16 +489,18 @@ class GridIndex:
         return d2 <= rp * rp * (1.0 + 1e-9) + 1e-300
 
     def _zproj(self, keys: np.ndarray) -> np.ndarray:
-        """float64 P x, in row blocks of ~2 MiB (the float64 copy of a block stays in cache)."""
+        """float64 P x, in row blocks of ~2 MiB (the float64 copy of a block stays in cache).
+
+        np.einsum's own loops in the calling thread, not BLAS: numpy's OpenBLAS starts a thread per
+        core for a product this small (36 x 14114 by 14114 x 8), which on the busy 2-core machine
+        took 13-27 ms per store call against 3-5 ms here (docs/memory.md); limiting OpenBLAS's
+        threads instead would be a process-wide side effect on the embedding learner."""
         keys = np.asarray(keys)
         n = len(keys)
         step = max(1, (1 << 18) // max(1, self.key_dim))
-        if n <= step:
-            return keys.astype(np.float64) @ self.P.T
         z = np.empty((n, len(self.P)))
-        PT = self.P.T
         for s in range(0, n, step):
-            z[s:s + step] = keys[s:s + step].astype(np.float64) @ PT
+            z[s:s + step] = np.einsum("ij,kj->ik", keys[s:s + step].astype(np.float64), self.P)
         return z
 
     def _fit_grid(self, z: np.ndarray) -> None:
