@@ -19,7 +19,7 @@ Services (private, relative to the node, e.g. ``/memory_node/store``):
 Topic ``~/stats`` (comper_msgs/msg/MemoryStats), every ``stats_period_s``, best effort, keep last 1.
 Parameters: every field of :class:`comper_memory.core.MemoryConfig` (read-only, declared with
 ``declare_config``) plus the node-level ``key_size``, ``stats_period_s``, ``sample_seed``,
-``faiss_threads`` and ``executor_threads``.
+``faiss_threads``, ``blas_threads`` and ``executor_threads``.
 
 A refused request answers ``success=false`` with the reason in ``message`` and changes nothing
 (the core validates a whole request before it touches any state); the node keeps serving.
@@ -50,6 +50,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from comper_msgs.msg import MemoryStats
 from comper_msgs.srv import GetStats, Reduce, ReduceBegin, ReduceCommit, Sample, Snapshot, Store
 from comper_msgs_py.arrays import TransitionError
+from comper_msgs_py.blas import set_numpy_blas_threads
 from comper_msgs_py.convert import batch_to_transitions, numpy_to_seq, seq_to_numpy, transitions_to_batch
 from comper_msgs_py.params import ConfigError
 from comper_msgs_py.ros_main import serve_node
@@ -126,6 +127,15 @@ class MemoryNode(Node):
             if self.faiss_threads > 0:
                 import faiss
                 faiss.omp_set_num_threads(self.faiss_threads)
+            self.blas_threads = int(self.declare_parameter(
+                "blas_threads", 1, ParameterDescriptor(
+                    description="threads of numpy's OpenBLAS in this process (0 = the library's default, "
+                                "all cores). 1: the key projection of a store call took 0.7 ms with one "
+                                "thread and 13-27 ms with two on the busy 2-core machine "
+                                "(benchmarks/memory_atari_bench.py). Process-wide, also when embedded",
+                    read_only=True, integer_range=[IntegerRange(from_value=0, to_value=1024, step=0)])).value)
+            if self.blas_threads > 0 and set_numpy_blas_threads(self.blas_threads) is None:
+                self.get_logger().warning("blas_threads: numpy's BLAS is not OpenBLAS; its threads are unchanged")
             self.executor_threads = int(self.declare_parameter(
                 "executor_threads", 1, ParameterDescriptor(
                     description="executor main() spins this node with: 1 = SingleThreadedExecutor "
@@ -165,7 +175,7 @@ class MemoryNode(Node):
             f"rtm_capacity {c.rtm_capacity}, tm_capacity {c.tm_capacity}, history_length "
             f"{c.history_length}, reduce_batch {c.reduce_batch}, max_store_batch {c.max_store_batch}, "
             f"max_sample_batch {c.max_sample_batch}, lease_timeout_s {c.lease_timeout_s:g}, "
-            f"stats every {self.stats_period_s:g} s, executor_threads {self.executor_threads}, faiss_threads {self.faiss_threads or 'default'}; {storage}")
+            f"stats every {self.stats_period_s:g} s, executor_threads {self.executor_threads}, faiss_threads {self.faiss_threads or 'default'}, blas_threads {self.blas_threads or 'default'}; {storage}")
 
     def make_executor(self, context=None):
         """The executor of ``executor_threads`` (also used when another process embeds this node)."""

@@ -491,16 +491,18 @@ class GridIndex:
     def _zproj(self, keys: np.ndarray) -> np.ndarray:
         """float64 P x, in row blocks of ~2 MiB (the float64 copy of a block stays in cache).
 
-        np.einsum's own loops in the calling thread, not BLAS: numpy's OpenBLAS starts a thread per
-        core for a product this small (36 x 14114 by 14114 x 8), which on the busy 2-core machine
-        took 13-27 ms per store call against 3-5 ms here (docs/memory.md); limiting OpenBLAS's
-        threads instead would be a process-wide side effect on the embedding learner."""
+        A BLAS product: keep numpy's OpenBLAS at one thread in processes that store (the memory
+        node's ``blas_threads``, default 1): with 2 threads this 36 x 14114 by 14114 x 8 product
+        took 13-27 ms per store call on the busy 2-core machine instead of 0.7 ms."""
         keys = np.asarray(keys)
         n = len(keys)
         step = max(1, (1 << 18) // max(1, self.key_dim))
+        if n <= step:
+            return keys.astype(np.float64) @ self.P.T
         z = np.empty((n, len(self.P)))
+        PT = self.P.T
         for s in range(0, n, step):
-            z[s:s + step] = np.einsum("ij,kj->ik", keys[s:s + step].astype(np.float64), self.P)
+            z[s:s + step] = keys[s:s + step].astype(np.float64) @ PT
         return z
 
     def _fit_grid(self, z: np.ndarray) -> None:
