@@ -26,6 +26,7 @@ import os
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from comper_agent.run_io import MetricsLog
@@ -171,9 +172,11 @@ def report(args) -> None:
             if not ys:
                 continue
             y = np.array(ys)
-            ax.plot(grid, np.nanmean(y, 0), label=f"{alg} ({len(ys)} seeds)")
-            if len(ys) > 1:
-                ax.fill_between(grid, np.nanmin(y, 0), np.nanmax(y, 0), alpha=0.2)
+            with warnings.catch_warnings():   # grid points before any run's first episode end are all NaN
+                warnings.simplefilter("ignore", RuntimeWarning)
+                ax.plot(grid, np.nanmean(y, 0), label=f"{alg} ({len(ys)} seeds)")
+                if len(ys) > 1:
+                    ax.fill_between(grid, np.nanmin(y, 0), np.nanmax(y, 0), alpha=0.2)
             for fr, ret in runs:
                 ax.scatter(fr, ret, s=6, alpha=0.5)
         ax.set_xlabel("frames (skipped ones counted)")
