@@ -87,3 +87,53 @@ def test_a_node_that_cannot_start_says_why_in_one_line_and_exits_1(module, args,
     assert p.returncode == 1, out
     assert len(out.splitlines()) == 1 and "cannot start: " in out and message in out, out
     assert not any(tmp_path.iterdir())          # refused before any run directory is made
+
+
+def test_recorder_child_exits_when_its_parent_died_before_prctl():
+    """PR_SET_PDEATHSIG's race: a parent that died between fork and prctl sends no signal, so the
+    child must notice (parent pid changed) and exit instead of running on unowned."""
+    import functools
+    import os
+    from comper_agent.agent_node import _die_with_parent
+    cmd = [sys.executable, "-c", "import time; time.sleep(30)"]
+    orphan = subprocess.Popen(cmd, preexec_fn=functools.partial(_die_with_parent, os.getpid() + 10_000_000))
+    assert orphan.wait(timeout=10) == 1        # "parent" pid differs: exits before exec
+    owned = subprocess.Popen(cmd, preexec_fn=functools.partial(_die_with_parent, os.getpid()))
+    try:
+        with pytest.raises(subprocess.TimeoutExpired):
+            owned.wait(timeout=1.0)            # the real parent: it runs
+    finally:
+        owned.kill()
+        owned.wait()
+
+
+_STUCK_CLOSE = """
+import sys, time
+from rclpy.node import Node
+from comper_msgs_py.ros_main import serve_node
+def ready(node):
+    print("ready", flush=True)
+def close(node):
+    print("closing", flush=True)
+    time.sleep(600)                            # a close that never ends
+sys.exit(serve_node(lambda: Node("stuck_close"), "stuck_close", on_ready=ready, on_close=close, graceful=True))
+"""
+
+
+def test_graceful_node_a_second_signal_ends_a_stuck_close():
+    """serve_node(graceful=True) (the recorder): the first SIGTERM starts the close; if the close
+    hangs, a second SIGTERM ends the process (default action restored), instead of being ignored."""
+    import signal
+    proc = subprocess.Popen([sys.executable, "-c", _STUCK_CLOSE], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.stdout.readline().strip() == "closing"      # the first signal is graceful
+        with pytest.raises(subprocess.TimeoutExpired):
+            proc.wait(timeout=0.5)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == -signal.SIGTERM
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import ctypes
+import functools
 import dataclasses
 import json
 import math
@@ -313,7 +314,8 @@ class AgentNode(Node):
             # own session: a terminal's Ctrl-C reaches the agent only, which hands over and stops the
             # recorder; PR_SET_PDEATHSIG: the recorder gets SIGTERM when the agent dies (even SIGKILL)
             self.recorder_proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy(),
-                                                  start_new_session=True, preexec_fn=_die_with_parent)
+                                                  start_new_session=True,
+                                                  preexec_fn=functools.partial(_die_with_parent, os.getpid()))
 
     def _wait_recorder_subscribed(self) -> None:
         """Return once the recorder process has subscribed to every recorded topic (the first episode
@@ -748,10 +750,14 @@ except OSError:
     _LIBC = None
 
 
-def _die_with_parent() -> None:
-    """preexec_fn of the recorder process: SIGTERM when the parent (the agent) dies (Linux prctl)."""
+def _die_with_parent(parent_pid: int) -> None:
+    """preexec_fn of the recorder process: SIGTERM when the parent (the agent) dies (Linux prctl).
+    A parent that died between fork and prctl sends nothing: then the child exits here (the
+    documented race of PR_SET_PDEATHSIG)."""
     if _LIBC is not None:
         _LIBC.prctl(1, int(signal.SIGTERM))   # PR_SET_PDEATHSIG = 1
+        if os.getppid() != parent_pid:
+            os._exit(1)
 
 
 def run_main(node_cls: type, name: str, args=None) -> int:

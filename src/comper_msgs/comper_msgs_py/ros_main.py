@@ -10,6 +10,9 @@ close and destroy it and exit 0.
 ``graceful=True`` (the recorder): rclpy's own signal handlers are not installed (they shut the
 context down at once); SIGINT / SIGTERM only end the spin loop, so ``on_close`` still runs with a
 valid context and can take what the subscriptions hold (nothing received is dropped at a stop).
+The first signal also gives both signals back their default action, so a second SIGINT / SIGTERM
+ends the process at once even when the close is stuck (in Python or in C): a stop that hangs can
+always be ended with one more signal.
 """
 from __future__ import annotations
 
@@ -47,8 +50,12 @@ def serve_node(make_node: Callable[[], object], name: str, args=None, *,
     stop = threading.Event()
     if graceful:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        def _stop(*_):
+            stop.set()
+            for s in (signal.SIGINT, signal.SIGTERM):   # the next one is the kernel's: no Python needed
+                signal.signal(s, signal.SIG_DFL)
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+            signal.signal(sig, _stop)
     else:
         rclpy.init(args=args)
     node = executor = None
