@@ -3,6 +3,7 @@
 import dataclasses
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -116,23 +117,31 @@ def ready(node):
 def close(node):
     print("closing", flush=True)
     time.sleep(600)                            # a close that never ends
-sys.exit(serve_node(lambda: Node("stuck_close"), "stuck_close", on_ready=ready, on_close=close, graceful=True))
+sys.exit(serve_node(lambda: Node("stuck_close"), "stuck_close", on_ready=ready, on_close=close, graceful=True,
+                    close_timeout_s=3.0))
 """
 
 
-def test_graceful_node_a_second_signal_ends_a_stuck_close():
-    """serve_node(graceful=True) (the recorder): the first SIGTERM starts the close; if the close
-    hangs, a second SIGTERM ends the process (default action restored), instead of being ignored."""
+def test_graceful_node_ignores_repeated_signals_and_a_stuck_close_times_out():
+    """serve_node(graceful=True) (the recorder): the first SIGTERM starts the close; repeated ones
+    (PR_SET_PDEATHSIG can send several) change nothing; a close that hangs is ended after
+    close_timeout_s by faulthandler's watchdog, exit 1, with the stuck stack on stderr."""
     import signal
-    proc = subprocess.Popen([sys.executable, "-c", _STUCK_CLOSE], stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-c", _STUCK_CLOSE], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
     try:
         assert proc.stdout.readline().strip() == "ready"
+        start = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         assert proc.stdout.readline().strip() == "closing"      # the first signal is graceful
-        with pytest.raises(subprocess.TimeoutExpired):
-            proc.wait(timeout=0.5)
         proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=10) == -signal.SIGTERM
+        proc.send_signal(signal.SIGINT)
+        with pytest.raises(subprocess.TimeoutExpired):
+            proc.wait(timeout=1.0)                              # neither ended it
+        assert proc.wait(timeout=15) == 1
+        assert time.monotonic() - start >= 2.5
+        err = proc.stderr.read()
+        assert "Timeout" in err and "in close" in err, err      # the watchdog's dump names the stuck call
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -23,6 +23,7 @@ from __future__ import annotations
 import importlib
 import json
 import os
+import signal
 import sys
 import threading
 import time
@@ -264,6 +265,8 @@ def main(args=None) -> int:
         for f, default, _ in spec_of(RecorderConfig):
             print(f"  {f.name} (default {default!r}): {describe(f)}")
         return 0
+    import faulthandler
+    faulthandler.register(signal.SIGUSR1, all_threads=True)   # kill -USR1 <pid>: every thread's stack to stderr
     return serve_node(RecorderNode, "recorder_node", args, on_close=lambda node: node.close(), graceful=True)
 
 

@@ -10,12 +10,14 @@ close and destroy it and exit 0.
 ``graceful=True`` (the recorder): rclpy's own signal handlers are not installed (they shut the
 context down at once); SIGINT / SIGTERM only end the spin loop, so ``on_close`` still runs with a
 valid context and can take what the subscriptions hold (nothing received is dropped at a stop).
-The first signal also gives both signals back their default action, so a second SIGINT / SIGTERM
-ends the process at once even when the close is stuck (in Python or in C): a stop that hangs can
-always be ended with one more signal.
+Further signals are ignored (``PR_SET_PDEATHSIG`` may deliver its SIGTERM more than once: once per
+thread of the dead parent the child is handed through). A close that takes longer than
+``close_timeout_s`` is ended by faulthandler's watchdog (a C thread: it works even when Python is
+stuck in C), which first writes every thread's stack to stderr; the exit status is then 1.
 """
 from __future__ import annotations
 
+import faulthandler
 import signal
 import threading
 from typing import Callable
@@ -38,22 +40,23 @@ def default_executor(node, context=None) -> Executor:
 def serve_node(make_node: Callable[[], object], name: str, args=None, *,
                executor_for: Callable[[object], Executor] | None = None,
                on_ready: Callable[[object], None] | None = None,
-               on_close: Callable[[object], None] | None = None, graceful: bool = False) -> int:
+               on_close: Callable[[object], None] | None = None, graceful: bool = False,
+               close_timeout_s: float = 60.0) -> int:
     """Run one node as a process: 0 on Ctrl-C / SIGTERM, 1 when it cannot start.
 
     executor_for(node) makes the executor; by default the node's own ``make_executor()`` if it
     has one (nodes with nested service calls need a multi-threaded one), else a
     SingleThreadedExecutor. on_ready(node) runs before spinning (e.g. torch
     thread settings); on_close(node) after spinning, before destroy_node (e.g. a final flush);
-    graceful: see the module docstring.
+    graceful, close_timeout_s: see the module docstring.
     """
     stop = threading.Event()
     if graceful:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         def _stop(*_):
+            if not stop.is_set():   # the watchdog is armed once: a repeated signal must not push it back
+                faulthandler.dump_traceback_later(close_timeout_s, exit=True)
             stop.set()
-            for s in (signal.SIGINT, signal.SIGTERM):   # the next one is the kernel's: no Python needed
-                signal.signal(s, signal.SIG_DFL)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, _stop)
     else:
