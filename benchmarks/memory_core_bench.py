@@ -141,7 +141,13 @@ def main():
     ap.add_argument("--engine", choices=("grid", "ivf"), default=None,
                     help="force an index engine (default: the memory's choice by key size)")
     ap.add_argument("--threads", type=int, default=0, help="faiss OpenMP threads (0: faiss default)")
+    ap.add_argument("--blas-threads", type=int, default=0,
+                    help="numpy's OpenBLAS threads (0: the library's default, as the recorded figures; "
+                         "memory_node's blas_threads default is 1)")
     args = ap.parse_args()
+    if args.blas_threads:
+        from comper_msgs_py.blas import set_numpy_blas_threads
+        print(f"[bench] numpy BLAS threads: {set_numpy_blas_threads(args.blas_threads)}", flush=True)
     if args.threads:
         faiss.omp_set_num_threads(args.threads)
     if args.sizes:
