@@ -1,0 +1,86 @@
+"""What the greedy policy of finished COMPER / DQN runs does: the action histogram of argmax Q.
+
+For each run folder (``<out>/runs/<run_id>`` of atari_bench.py, or any comper_node run dir) it loads
+``checkpoints/latest.pt``, plays ``--states`` steps of the run's game with the sim's own ALE
+pipeline (comper_sim.core, same preprocessing and frame stack as the run) under a behaviour policy
+that takes the greedy action or, with probability ``--explore``, a random one (so the states are not
+only the greedy policy's), and prints per run: how many distinct greedy actions, the most common
+one and its share, and the mean gap between the largest and smallest Q of a state. A run whose
+greedy action is the same in every state has learned an action preference, not a state-dependent
+policy.
+
+    python benchmarks/atari_policy_check.py benchmarks/results/atari/s5/runs/*
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from comper_agent.core.networks import NatureCNN
+from comper_sim.core.config import SimConfig
+from comper_sim.core.envs import make_env
+
+ALE_ACTIONS = ("NOOP FIRE UP RIGHT LEFT DOWN UPRIGHT UPLEFT DOWNRIGHT DOWNLEFT UPFIRE RIGHTFIRE LEFTFIRE DOWNFIRE "
+               "UPRIGHTFIRE UPLEFTFIRE DOWNRIGHTFIRE DOWNLEFTFIRE").split()
+
+
+def check(run: Path, states: int, explore: float, seed: int) -> dict:
+    cfg = yaml.safe_load((run / "config.yaml").read_text())
+    env_id, fs = cfg["env"]["env_id"], int(cfg["learner"]["frame_stack"])
+    n = int(cfg["learner"]["n_actions"])
+    ckpt = torch.load(run / "checkpoints" / "latest.pt", map_location="cpu", weights_only=False)
+    q = NatureCNN(fs, n)
+    q.load_state_dict(ckpt["state"]["learner"]["q"])
+    q.eval()
+    env = make_env(SimConfig(env_id=env_id, frame_stack=fs))
+    rng = np.random.default_rng(seed)
+    obs, greedy, gaps = env.reset(seed), [], []
+    try:
+        for _ in range(states):
+            with torch.no_grad():
+                qv = q(torch.as_tensor(obs[None]))[0].numpy()
+            greedy.append(int(qv.argmax()))
+            gaps.append(float(qv.max() - qv.min()))
+            a = int(rng.integers(n)) if rng.random() < explore else greedy[-1]
+            obs, _, terminated, truncated, _ = env.step(a)
+            if terminated or truncated:
+                obs = env.reset(None)
+    finally:
+        env.close()
+    counts = np.bincount(greedy, minlength=n)
+    top = int(counts.argmax())
+    return {"run": run.name, "env_id": env_id, "distinct": int((counts > 0).sum()),
+            "top_action": ALE_ACTIONS[top] if n == 18 else str(top), "top_share": float(counts[top] / len(greedy)),
+            "q_gap_mean": float(np.mean(gaps))}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="+", type=Path, help="run folders with config.yaml and checkpoints/latest.pt")
+    ap.add_argument("--states", type=int, default=500, help="states visited per run")
+    ap.add_argument("--explore", type=float, default=0.5, help="share of random actions of the behaviour policy")
+    ap.add_argument("--seed", type=int, default=1234, help="sim and behaviour seed (not a training seed)")
+    ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    rows = []
+    print("| run | distinct greedy actions | most common (share) | mean max-min Q |")
+    print("|---|---|---|---|")
+    for run in args.runs:
+        if not (run / "checkpoints" / "latest.pt").exists():
+            continue
+        r = check(run, args.states, args.explore, args.seed)
+        rows.append(r)
+        print(f"| {r['run']} | {r['distinct']} | {r['top_action']} ({r['top_share']:.0%}) | {r['q_gap_mean']:.3f} |",
+              flush=True)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
