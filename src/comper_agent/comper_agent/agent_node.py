@@ -17,8 +17,8 @@
 from __future__ import annotations
 
 import ctypes
-import functools
 import dataclasses
+import functools
 import json
 import math
 import os

@@ -10,8 +10,8 @@ close and destroy it and exit 0.
 ``graceful=True`` (the recorder): rclpy's own signal handlers are not installed (they shut the
 context down at once); SIGINT / SIGTERM only end the spin loop, so ``on_close`` still runs with a
 valid context and can take what the subscriptions hold (nothing received is dropped at a stop).
-Further signals are ignored (``PR_SET_PDEATHSIG`` may deliver its SIGTERM more than once: once per
-thread of the dead parent the child is handed through). A close that takes longer than
+Further signals are ignored (``PR_SET_PDEATHSIG`` can deliver its SIGTERM more than once; two were
+seen queued at one recorder). A close that takes longer than
 ``close_timeout_s`` is ended by faulthandler's watchdog (a C thread: it works even when Python is
 stuck in C), which first writes every thread's stack to stderr; the exit status is then 1.
 """
