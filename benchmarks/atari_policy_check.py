@@ -21,23 +21,20 @@ import numpy as np
 import torch
 import yaml
 
-from comper_agent.core.networks import NatureCNN
+from comper_agent.offline import load_policy
+from comper_agent.run_io import resolve_checkpoint
 from comper_sim.core.config import SimConfig
 from comper_sim.core.envs import make_env
 
-ALE_ACTIONS = ("NOOP FIRE UP RIGHT LEFT DOWN UPRIGHT UPLEFT DOWNRIGHT DOWNLEFT UPFIRE RIGHTFIRE LEFTFIRE DOWNFIRE "
-               "UPRIGHTFIRE UPLEFTFIRE DOWNRIGHTFIRE DOWNLEFTFIRE").split()
-
-
 def check(run: Path, states: int, explore: float, seed: int) -> dict:
-    cfg = yaml.safe_load((run / "config.yaml").read_text())
-    env_id, fs = cfg["env"]["env_id"], int(cfg["learner"]["frame_stack"])
-    n = int(cfg["learner"]["n_actions"])
-    ckpt = torch.load(run / "checkpoints" / "latest.pt", map_location="cpu", weights_only=False)
-    q = NatureCNN(fs, n)
-    q.load_state_dict(ckpt["state"]["learner"]["q"])
-    q.eval()
-    env = make_env(SimConfig(env_id=env_id, frame_stack=fs))
+    env_id = yaml.safe_load((run / "config.yaml").read_text())["env"]["env_id"]
+    policy = load_policy(resolve_checkpoint(run))        # the Q-network, shapes from the checkpoint
+    if policy.kind != "dqn":
+        raise ValueError(f"{run}: not a COMPER / DQN checkpoint")
+    q = policy.q
+    n = int(q.head[-1].out_features)
+    env = make_env(SimConfig(env_id=env_id, frame_stack=q.in_channels))
+    names = env.env.unwrapped.get_action_meanings()     # ALE's own action names, in action order
     rng = np.random.default_rng(seed)
     obs, greedy, gaps = env.reset(seed), [], []
     try:
@@ -55,7 +52,7 @@ def check(run: Path, states: int, explore: float, seed: int) -> dict:
     counts = np.bincount(greedy, minlength=n)
     top = int(counts.argmax())
     return {"run": run.name, "env_id": env_id, "distinct": int((counts > 0).sum()),
-            "top_action": ALE_ACTIONS[top] if n == 18 else str(top), "top_share": float(counts[top] / len(greedy)),
+            "top_action": names[top], "top_share": float(counts[top] / len(greedy)),
             "q_gap_mean": float(np.mean(gaps))}
 
 
