@@ -1,6 +1,9 @@
 """agent_node: the learner nodes' shared parameters and entry point, without a running ROS graph
 (the start-up error test runs the node in a separate process)."""
 import dataclasses
+import functools
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -93,8 +96,6 @@ def test_a_node_that_cannot_start_says_why_in_one_line_and_exits_1(module, args,
 def test_recorder_child_exits_when_its_parent_died_before_prctl():
     """PR_SET_PDEATHSIG's race: a parent that died between fork and prctl sends no signal, so the
     child must notice (parent pid changed) and exit instead of running on unowned."""
-    import functools
-    import os
     from comper_agent.agent_node import _die_with_parent
     cmd = [sys.executable, "-c", "import time; time.sleep(30)"]
     orphan = subprocess.Popen(cmd, preexec_fn=functools.partial(_die_with_parent, os.getpid() + 10_000_000))
@@ -126,7 +127,6 @@ def test_graceful_node_ignores_repeated_signals_and_a_stuck_close_times_out():
     """serve_node(graceful=True) (the recorder): the first SIGTERM starts the close; repeated ones
     (PR_SET_PDEATHSIG can send several) change nothing; a close that hangs is ended after
     close_timeout_s by faulthandler's watchdog, exit 1, with the stuck stack on stderr."""
-    import signal
     proc = subprocess.Popen([sys.executable, "-c", _STUCK_CLOSE], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     try:
