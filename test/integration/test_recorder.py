@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -176,3 +177,72 @@ def test_bag_to_memory_and_export(launch, ros_node, tmp_path):
     stats = call(ros_node, client, GetStats.Request()).stats
     assert stats.transitions_stored == len(t)
     assert mem.alive()
+
+
+def test_flow_control_keeps_every_message_of_a_publisher_faster_than_the_recorder(launch, ros_node, tmp_path):
+    """RecordingFlow: a publisher that outruns the recorder (1,500 summaries as fast as rclpy publishes)
+    waits at the window of unwritten messages instead of overrunning the topics' KEEP_LAST 100. Without
+    the waits the same loop left ~100 of the 1,500 in the bag (docs/recording.md)."""
+    from comper_agent.offline import read_runs
+    from comper_agent.recorder_node import RecordingFlow
+    from comper_msgs.msg import EpisodeSummary
+    rec = launch("comper_agent", "recorder_node", "--ros-args", "-r", "__node:=flow_recorder",
+                 "-p", f"output_dir:={tmp_path}/runs", "-p", "run_id:=flow", "-p", "storage:=sqlite3")
+    topics = _publisher(ros_node)
+    _wait_matched(ros_node, [topics.episodes_pub])
+    fc = RecordingFlow(ros_node, "/flow_recorder", window=50, timeout_s=30.0)
+    stop = threading.Event()
+
+    def spin():                     # the status callbacks; wait() blocks this test's thread
+        while not stop.is_set():
+            spin_once(ros_node, 0.05)
+
+    spinner = threading.Thread(target=spin)
+    spinner.start()
+    name, n, most = topics.episodes_pub.topic_name, 1500, 0
+    try:
+        for i in range(n):
+            fc.wait(name)
+            most = max(most, fc.backlog(name))
+            topics.episodes_pub.publish(EpisodeSummary(run_id="flow", source="train", episode_id=i, length=1))
+            fc.sent(name)
+        end = time.monotonic() + 30
+        while fc.backlog(name) > 0 and time.monotonic() < end:
+            time.sleep(0.05)
+    finally:
+        stop.set()
+        spinner.join()
+    assert rec.stop() == 0
+    (run,) = read_runs([tmp_path / "runs" / "flow"]).values()
+    assert [e.episode_id for e in run.train_episodes()] == list(range(n))
+    assert fc.timeouts == 0 and most <= 50
+
+
+def test_flow_control_counts_write_offs_and_stops_waiting_at_close(ros_node):
+    """RecordingFlow's bookkeeping on real RecorderStatus messages: a timed-out wait writes the backlog
+    off (the next wait does not time out again, and their late writes give no extra credit), counts only
+    grow, a closed bag ends the waiting."""
+    from comper_agent.recorder_node import RecordingFlow
+    from comper_msgs.msg import RecorderStatus
+    fc = RecordingFlow(ros_node, "/nobody_records", window=3, timeout_s=0.2)
+    a, b = "/agent/episodes", "/agent/transitions"
+    fc.sent(a, 3)
+    fc.sent(b, 1)
+    assert fc.wait(b) == (0.0, True)
+    waited, ok = fc.wait(a, b)
+    assert not ok and waited >= 0.2 and fc.timeouts == 1
+    assert fc.backlog(a) == 0 and fc.backlog(b) == 1           # only the topic over the window
+    assert fc.wait(a, b) == (0.0, True)
+    fc.sent(a, 4)
+    fc._on_status(RecorderStatus(topics=[a, b], messages=[2, 1]))   # 2 of the 3 written off, late
+    assert fc.backlog(a) == 4 and fc.backlog(b) == 0
+    fc._on_status(RecorderStatus(topics=[a], messages=[5]))
+    assert fc.backlog(a) == 2
+    fc._on_status(RecorderStatus(topics=[a], messages=[4]))     # an older status: counts do not go back
+    assert fc.backlog(a) == 2
+    fc.sent(a, 10)
+    stop = threading.Event()
+    stop.set()
+    assert fc.wait(a, stop=stop) == (0.0, True) and fc.timeouts == 1     # a stopping agent does not wait
+    fc._on_status(RecorderStatus(topics=[a], messages=[5], closed=True))
+    assert fc.wait(a) == (0.0, True) and fc.timeouts == 1

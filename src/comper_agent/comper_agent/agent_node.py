@@ -109,6 +109,13 @@ class AgentRunConfig:
         "and if the agent dies, even by SIGKILL, the recorder gets SIGTERM and closes the bag; its log is "
         "<run dir>/recorder.log), 'in_process' = a node on this process's executor (one process; costs "
         "~4-5 percent of the training throughput on Hopper-v4, docs/recording.md)", choices=("child", "in_process"))
+    record_window: int = param(
+        50, "record:=true: most training episodes published but not yet written by the recorder; the agent waits "
+        "beyond it (flow control from the recorder's ~/status). Below the topics' history depth (100), so no "
+        "reliable queue drops an episode when the agent outpaces the recorder", minimum=1, maximum=99)
+    record_wait_s: float = param(
+        60.0, "record:=true: longest wait for the recorder to catch up; after it the backlog is written off with "
+        "a warning and training goes on", minimum=0.0)
     publish_transitions: bool = param(
         True, "publish each finished training episode's transitions (with the labels stored) on "
         "~/transitions, before its ~/episodes summary, while someone subscribes (record:=true does)")
@@ -259,11 +266,17 @@ class AgentNode(Node):
                 qt_params={"memory_node": p.memory_node, "reduce_batch": int(p.reduce_batch), **qt})
             nodes += self.embedded.all
         self.recorder_proc = None
+        self.flow = None
         if p.record and p.record_process == "in_process":
             nodes.append(self._make_recorder(self.run_id))
         try:
             if p.record and p.record_process == "child":
                 self._start_recorder_process(self.run_id)
+            if p.record:
+                from .recorder_node import RecordingFlow
+                recorder = (self.recorder.get_fully_qualified_name() if self.recorder is not None
+                            else f"/{self.get_name()}_recorder")
+                self.flow = RecordingFlow(self, recorder, window=p.record_window, timeout_s=p.record_wait_s)
         except BaseException:
             if self.embedded is not None:
                 self.embedded.destroy()
@@ -576,11 +589,16 @@ class AgentNode(Node):
         self.progress.episode(self.ep_return)
         stamp = self.get_clock().now().to_msg()
         parts, self.ep_parts = self.ep_parts, []
+        send_transitions = bool(parts) and self._transitions_wanted()
+        if self.flow is not None:
+            self._wait_for_recorder(send_transitions)
         with self.ptimers("publish"):
-            if parts and self._transitions_wanted():
+            if send_transitions:
                 bm = transitions_to_batch(parts[0] if len(parts) == 1 else Transitions.concatenate(parts))
                 bm.header.stamp = stamp
                 self.transitions_pub.publish(bm)
+                if self.flow is not None:
+                    self.flow.sent(self.transitions_pub.topic_name)
             msg = EpisodeSummary(run_id=self.run_id, env_id=self.p.env_id, source="train",
                                  episode_id=self.episodes - 1, episode_return=float(self.ep_return),
                                  length=int(self.ep_len), frames=int(ep_frames), terminated=bool(terminated),
@@ -588,10 +606,23 @@ class AgentNode(Node):
                                  global_frames=int(global_frames), wall_time_s=float(self.wall_time()))
             msg.header.stamp = stamp
             self.episode_pub.publish(msg)
+            if self.flow is not None:
+                self.flow.sent(self.episode_pub.topic_name)
         self.metrics.write("episode", source="train", step=self.step, episode=self.episodes - 1,
                            ret=self.ep_return, length=self.ep_len, terminated=terminated, truncated=truncated,
                            wall_time_s=self.wall_time(), **fields)
         self.scalars.scalar("train/episode_return", self.ep_return, x)
+
+    def _wait_for_recorder(self, with_transitions: bool) -> None:
+        """record:=true: wait while record_window episodes are not yet in the bag (RecordingFlow)."""
+        topics = [self.episode_pub.topic_name] + ([self.transitions_pub.topic_name] if with_transitions else [])
+        waited, ok = self.flow.wait(*topics, stop=self.stop_event)   # Ctrl-C is not held up
+        if waited > 0:
+            self.ptimers.add("record_wait", waited)
+        if not ok:
+            self.log.warning(f"the recorder has not written {self.p.record_window} or more of this run's episodes "
+                             f"for record_wait_s={self.p.record_wait_s:g} s; they are written off (the bag may "
+                             f"miss them) and training goes on")
 
     # ------------------------------------------------------------------------------ memory
     def _get_stats(self) -> dict:

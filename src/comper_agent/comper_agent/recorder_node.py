@@ -40,11 +40,15 @@ from comper_msgs_py.ros_params import declare_config
 from .recording import (ChunkedBagWriter, RecorderConfig, comper_typestore, make_qos,
                         parse_topic_spec)
 
-__all__ = ["RecorderNode", "EpisodeTopics", "EPISODE_QOS", "main", "run_directory"]
+__all__ = ["RecorderNode", "EpisodeTopics", "RecordingFlow", "EPISODE_QOS", "STATUS_QOS", "main",
+           "run_directory"]
 
 #: QoS of <agent>/transitions, <agent>/episodes, <agent>/evaluations (docs/architecture.md)
 EPISODE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
+#: QoS of <recorder>/status: the latest count is all that matters, and a late subscriber gets it
+STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def _msg_class(msgtype: str):
@@ -88,6 +92,11 @@ class RecorderNode(Node):
         self._lock = threading.Lock()
         self._closed = False
         self._group = MutuallyExclusiveCallbackGroup()
+        from comper_msgs.msg import RecorderStatus
+        self._status_msg = RecorderStatus(bag_path=str(self.bag_path))
+        self._status_pub = self.create_publisher(RecorderStatus, "~/status", STATUS_QOS)
+        self._status_sent = 0.0      # monotonic time of the last ~/status
+        self._status_dirty = True
         self._subs: dict[str, object] = {}
         self._handles: dict[str, int] = {}        # topic -> bag writer handle
         self._pending: dict[str, str | None] = {}   # topic -> msgtype (None: to discover)
@@ -156,11 +165,30 @@ class RecorderNode(Node):
         with self._lock:
             if not self._closed:
                 self.writer.write(handle, time.time_ns(), data)
+                self._status_dirty = True
+                if time.monotonic() - self._status_sent >= self.config.status_period_s:
+                    self._publish_status()
 
     def _on_timer(self) -> None:
         with self._lock:
             if not self._closed and self.writer.due():
                 self.writer.split()
+            if self._status_dirty and not self._closed:
+                self._publish_status()
+
+    def _publish_status(self, closed: bool = False) -> None:
+        """~/status: messages written per topic (under self._lock)."""
+        s, m = self.writer.stats, self._status_msg
+        m.header.stamp = self.get_clock().now().to_msg()
+        m.topics = list(s.topic_counts)
+        m.messages = [int(v) for v in s.topic_counts.values()]
+        m.bytes = int(s.bytes)
+        m.closed = bool(closed)
+        try:
+            self._status_pub.publish(m)
+        except Exception:   # a shut-down context (close after Ctrl-C): nobody to tell
+            pass
+        self._status_sent, self._status_dirty = time.monotonic(), False
 
     def flush(self) -> None:
         """Close the open bag file now (everything received so far becomes durable)."""
@@ -197,6 +225,7 @@ class RecorderNode(Node):
                 return
             self._closed = True
             self.writer.close()
+            self._publish_status(closed=True)
         s = self.writer.stats
         self.get_logger().info(
             f"bag closed: {self.bag_path} ({s.messages} messages, {s.bytes / 2**20:.1f} MB, "
@@ -253,6 +282,78 @@ class EpisodeTopics:
     def destroy(self) -> None:
         for p in (self.transitions_pub, self.episodes_pub, self.evaluations_pub):
             self.node.destroy_publisher(p)
+
+
+class RecordingFlow:
+    """Credit-based flow control on the recording contract, for a publisher of recorded topics.
+
+    The contract's topics are reliable KEEP_LAST 100 (EPISODE_QOS): a publisher that runs more than 100
+    messages ahead of the recorder's writes loses the oldest (the writer's or the reader's history
+    overwrites them). The recorder reports what it has written on ``<recorder>/status``; ``wait`` blocks
+    while ``window`` or more of this publisher's messages on a topic are sent but not yet written::
+
+        flow = RecordingFlow(node, "/comcact_node_recorder", window=50, timeout_s=60.0)
+        waited_s, ok = flow.wait(topic)      # before publishing
+        pub.publish(msg); flow.sent(topic)
+
+    The counts are this publisher's own: only it publishes on the topics it controls, and the recorder
+    subscribed before its first message. A wait that times out (recorder stuck, dead or missing
+    messages) writes the backlog off, so the next wait starts from zero instead of timing out again;
+    a closed bag ends all waiting. ``status`` subscriptions run on the node's executor, so ``wait``
+    must be called from another thread (an agent's training loop)."""
+
+    def __init__(self, node: Node, recorder: str, *, window: int, timeout_s: float):
+        from comper_msgs.msg import RecorderStatus
+        if window < 1:
+            raise ValueError(f"window must be >= 1, not {window}")
+        self.window, self.timeout_s = int(window), float(timeout_s)
+        self._cond = threading.Condition()
+        self._sent: dict[str, int] = {}
+        self._written: dict[str, int] = {}
+        self._floor: dict[str, int] = {}     # sent count at a write-off: those are not waited for again
+        self.closed = False
+        self.timeouts = 0
+        self.status_topic = f"{recorder.rstrip('/')}/status"
+        self._sub = node.create_subscription(RecorderStatus, self.status_topic, self._on_status, STATUS_QOS)
+
+    def _on_status(self, msg) -> None:
+        with self._cond:
+            for t, n in zip(msg.topics, msg.messages):
+                self._written[t] = max(self._written.get(t, 0), int(n))
+            self.closed = self.closed or bool(msg.closed)
+            self._cond.notify_all()
+
+    def sent(self, topic: str, n: int = 1) -> None:
+        with self._cond:
+            self._sent[topic] = self._sent.get(topic, 0) + int(n)
+
+    def backlog(self, topic: str) -> int:
+        """Messages sent on `topic` that the recorder has not reported written (nor been written off)."""
+        with self._cond:
+            return self._backlog(topic)
+
+    def _backlog(self, topic: str) -> int:
+        return self._sent.get(topic, 0) - max(self._written.get(topic, 0), self._floor.get(topic, 0))
+
+    def wait(self, *topics: str, stop: threading.Event | None = None) -> tuple[float, bool]:
+        """Block until every topic's backlog is below the window, or `stop` is set; (seconds waited,
+        False if it timed out)."""
+        t0 = None
+        with self._cond:
+            while not self.closed and not (stop is not None and stop.is_set()):
+                over = [t for t in topics if self._backlog(t) >= self.window]
+                if not over:
+                    break
+                now = time.monotonic()
+                if t0 is None:
+                    t0 = now
+                if now - t0 >= self.timeout_s:
+                    for t in over:
+                        self._floor[t] = self._sent.get(t, 0)
+                    self.timeouts += 1
+                    return now - t0, False
+                self._cond.wait(min(self.timeout_s - (now - t0), 0.1 if stop is not None else float("inf")))
+        return (time.monotonic() - t0 if t0 is not None else 0.0), True
 
 
 def main(args=None) -> int:

@@ -446,6 +446,9 @@ class RecorderConfig:
     fsync: bool = _param(True, "fsync each closed file and metadata.yaml (survives power loss, "
                                "not only process death)")
     qos_depth: int = _param(100, "history depth of the recorder's subscriptions", minimum=1)
+    status_period_s: float = _param(
+        0.02, "least seconds between two ~/status messages (RecorderStatus: messages written per topic, the "
+              "publishers' flow control); one more goes out at close", minimum=0.0)
     discovery_period_s: float = _param(
         0.5, "period of the graph look-up for topics whose type is not known from their name",
         minimum=0.05)
