@@ -31,6 +31,8 @@ from comper_msgs_py.arrays import Transitions
 from comper_sim.core.config import SimConfig
 from comper_sim.core.envs import make_env
 
+from bench_args import add_blas_threads, apply_blas_threads
+
 
 def play(game: str, n: int, seed: int) -> Transitions:
     env = make_env(SimConfig(env_id=game))
@@ -92,13 +94,9 @@ def main() -> None:
     ap.add_argument("--dims", type=int, nargs="+", default=[3, 8], help="index_projection_dim values to compare")
     ap.add_argument("--every", type=int, default=1000, help="steps per printed row")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--blas-threads", type=int, default=0,
-                    help="numpy's OpenBLAS threads (0: the library's default, as the recorded figures; "
-                         "memory_node's blas_threads default is 1)")
+    add_blas_threads(ap)
     args = ap.parse_args()
-    if args.blas_threads:
-        from comper_msgs_py.blas import set_numpy_blas_threads
-        print(f"[bench] numpy BLAS threads: {set_numpy_blas_threads(args.blas_threads)}", flush=True)
+    apply_blas_threads(args)
     t0 = time.perf_counter()
     t = play(args.game, args.transitions, args.seed)
     print(f"[bench] {args.transitions} {args.game} transitions played in {time.perf_counter() - t0:.1f} s", flush=True)

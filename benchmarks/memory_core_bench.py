@@ -23,6 +23,8 @@ import numpy as np
 from comper_memory.core import CompactMemory, MemoryConfig, transition_keys
 from comper_msgs_py.arrays import Transitions
 
+from bench_args import add_blas_threads, apply_blas_threads
+
 SHAPES = {26: ("float", (12,), 1), 770: ("float", (384,), 1), 14114: ("uint8", (84, 84), 0)}
 
 
@@ -141,13 +143,9 @@ def main():
     ap.add_argument("--engine", choices=("grid", "ivf"), default=None,
                     help="force an index engine (default: the memory's choice by key size)")
     ap.add_argument("--threads", type=int, default=0, help="faiss OpenMP threads (0: faiss default)")
-    ap.add_argument("--blas-threads", type=int, default=0,
-                    help="numpy's OpenBLAS threads (0: the library's default, as the recorded figures; "
-                         "memory_node's blas_threads default is 1)")
+    add_blas_threads(ap)
     args = ap.parse_args()
-    if args.blas_threads:
-        from comper_msgs_py.blas import set_numpy_blas_threads
-        print(f"[bench] numpy BLAS threads: {set_numpy_blas_threads(args.blas_threads)}", flush=True)
+    apply_blas_threads(args)
     if args.threads:
         faiss.omp_set_num_threads(args.threads)
     if args.sizes:
