@@ -7,7 +7,8 @@ that takes the greedy action or, with probability ``--explore``, a random one (s
 only the greedy policy's), and prints per run: how many distinct greedy actions, the most common
 one and its share, and the mean gap between the largest and smallest Q of a state. A run whose
 greedy action is the same in every state has learned an action preference, not a state-dependent
-policy.
+policy. The last two columns compare with the network the run started from (the learner built from
+its config.yaml, same seed): whether training moved the greedy action at all.
 
     python benchmarks/atari_policy_check.py benchmarks/results/atari/s5/runs/*
 """
@@ -21,26 +22,38 @@ import numpy as np
 import torch
 import yaml
 
+from comper_agent.core.comper import ComperLearner
+from comper_agent.core.config import ComperConfig, DQNConfig
 from comper_agent.offline import load_policy
+from comper_msgs_py.params import config_from_dict
 from comper_agent.run_io import resolve_checkpoint
 from comper_sim.core.config import SimConfig
 from comper_sim.core.envs import make_env
 
+def initial_network(config: dict) -> torch.nn.Module:
+    """The Q-network the run started from: the learner built from the run's config.yaml (same seed)."""
+    learner = config["learner"]
+    cls = DQNConfig if learner["variant"] == "dqn" else ComperConfig
+    return ComperLearner(config_from_dict(cls, learner)).q
+
+
 def check(run: Path, states: int, explore: float, seed: int) -> dict:
-    env_id = yaml.safe_load((run / "config.yaml").read_text())["env"]["env_id"]
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    env_id = config["env"]["env_id"]
     policy = load_policy(resolve_checkpoint(run))        # the Q-network, shapes from the checkpoint
     if policy.kind != "dqn":
         raise ValueError(f"{run}: not a COMPER / DQN checkpoint")
-    q = policy.q
+    q, q0 = policy.q, initial_network(config)
     n = int(q.head[-1].out_features)
     env = make_env(SimConfig(env_id=env_id, frame_stack=q.in_channels))
     names = env.env.unwrapped.get_action_meanings()     # ALE's own action names, in action order
     rng = np.random.default_rng(seed)
-    obs, greedy, gaps = env.reset(seed), [], []
+    obs, greedy, gaps, greedy0 = env.reset(seed), [], [], []
     try:
         for _ in range(states):
             with torch.no_grad():
                 qv = q(torch.as_tensor(obs[None]))[0].numpy()
+                greedy0.append(int(q0(torch.as_tensor(obs[None]))[0].argmax()))
             greedy.append(int(qv.argmax()))
             gaps.append(float(qv.max() - qv.min()))
             a = int(rng.integers(n)) if rng.random() < explore else greedy[-1]
@@ -49,11 +62,13 @@ def check(run: Path, states: int, explore: float, seed: int) -> dict:
                 obs = env.reset(None)
     finally:
         env.close()
-    counts = np.bincount(greedy, minlength=n)
-    top = int(counts.argmax())
+    counts, counts0 = np.bincount(greedy, minlength=n), np.bincount(greedy0, minlength=n)
+    top, top0 = int(counts.argmax()), int(counts0.argmax())
     return {"run": run.name, "env_id": env_id, "distinct": int((counts > 0).sum()),
             "top_action": names[top], "top_share": float(counts[top] / len(greedy)),
-            "q_gap_mean": float(np.mean(gaps))}
+            "q_gap_mean": float(np.mean(gaps)),
+            "initial_top_action": names[top0], "initial_top_share": float(counts0[top0] / len(greedy0)),
+            "same_as_initial": float(np.mean(np.asarray(greedy) == np.asarray(greedy0)))}
 
 
 def main() -> None:
@@ -66,15 +81,16 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     rows = []
-    print("| run | distinct greedy actions | most common (share) | mean max-min Q |")
-    print("|---|---|---|---|")
+    print("| run | distinct greedy actions | most common (share) | mean max-min Q | initial network's most common (share) "
+          "| states where the greedy action is the initial network's |")
+    print("|---|---|---|---|---|---|")
     for run in args.runs:
         if not (run / "checkpoints" / "latest.pt").exists():
             continue
         r = check(run, args.states, args.explore, args.seed)
         rows.append(r)
-        print(f"| {r['run']} | {r['distinct']} | {r['top_action']} ({r['top_share']:.0%}) | {r['q_gap_mean']:.3f} |",
-              flush=True)
+        print(f"| {r['run']} | {r['distinct']} | {r['top_action']} ({r['top_share']:.0%}) | {r['q_gap_mean']:.3f} "
+              f"| {r['initial_top_action']} ({r['initial_top_share']:.0%}) | {r['same_as_initial']:.0%} |", flush=True)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 
