@@ -161,6 +161,8 @@ def report(args) -> None:
     except ImportError as exc:
         print(f"[bench] no figures: matplotlib not importable ({exc})")
         return
+    variants = sorted({alg for by_alg in [*curves.values(), *memory.values()] for alg in by_alg})
+    colour = {alg: f"C{k}" for k, alg in enumerate(variants)}   # one colour per variant, its seeds included
     for game, by_alg in curves.items():
         fig, ax = plt.subplots(figsize=(7, 4))
         grid = np.linspace(0, args.frames, 101)
@@ -174,11 +176,11 @@ def report(args) -> None:
             y = np.array(ys)
             with warnings.catch_warnings():   # grid points before any run's first episode end are all NaN
                 warnings.simplefilter("ignore", RuntimeWarning)
-                ax.plot(grid, np.nanmean(y, 0), label=f"{alg} ({len(ys)} seeds)")
+                ax.plot(grid, np.nanmean(y, 0), color=colour[alg], label=f"{alg} ({len(ys)} seeds)")
                 if len(ys) > 1:
-                    ax.fill_between(grid, np.nanmin(y, 0), np.nanmax(y, 0), alpha=0.2)
+                    ax.fill_between(grid, np.nanmin(y, 0), np.nanmax(y, 0), color=colour[alg], alpha=0.2)
             for fr, ret in runs:
-                ax.scatter(fr, ret, s=6, alpha=0.5)
+                ax.scatter(fr, ret, s=6, alpha=0.5, color=colour[alg])
         ax.set_xlabel("frames (skipped ones counted)")
         ax.set_ylabel("training episode return")
         ax.set_title(f"{game}: training episodes")
@@ -194,14 +196,14 @@ def report(args) -> None:
                     continue
                 fr = [m["frames"] for m in mem]
                 lab = f"{alg}" if k == 0 else None
-                l1, = axes[0].plot(fr, [m["rtm_size"] for m in mem], label=f"{lab} RTM" if lab else None)
-                axes[0].plot(fr, [m["identities"] for m in mem], "--", color=l1.get_color(),
+                c = colour[alg]
+                axes[0].plot(fr, [m["rtm_size"] for m in mem], color=c, label=f"{lab} RTM" if lab else None)
+                axes[0].plot(fr, [m["identities"] for m in mem], "--", color=c,
                              label=f"{lab} identities" if lab else None)
-                axes[0].plot(fr, [m["tm_sets"] for m in mem], ":", color=l1.get_color(),
-                             label=f"{lab} TM sets" if lab else None)
-                axes[1].plot(fr, [m.get("sampled_set_size_mean", np.nan) for m in mem], color=l1.get_color(),
+                axes[0].plot(fr, [m["tm_sets"] for m in mem], ":", color=c, label=f"{lab} TM sets" if lab else None)
+                axes[1].plot(fr, [m.get("sampled_set_size_mean", np.nan) for m in mem], color=c,
                              label=f"{lab} mean" if lab else None)
-                axes[1].plot(fr, [m.get("sampled_set_size_p90", np.nan) for m in mem], "--", color=l1.get_color(),
+                axes[1].plot(fr, [m.get("sampled_set_size_p90", np.nan) for m in mem], "--", color=c,
                              label=f"{lab} p90" if lab else None)
         axes[0].set_xlabel("frames")
         axes[0].set_ylabel("entries")
