@@ -158,6 +158,23 @@ def test_record_keeps_every_episode_when_the_agent_outpaces_the_recorder(launch,
     assert [(e.episode_id, e.episode_return, e.length) for e in run.train_episodes()] == logged
 
 
+def test_agent_goes_on_without_waiting_when_its_recorder_process_dies(launch, tmp_path):
+    """A SIGKILLed recorder process: the agent says so once, stops the flow control (no record_wait_s
+    stalls) and finishes the run."""
+    proc = launch("comper_agent", "comcact_node",
+                  *_args(tmp_path, "norec", "-p", "algorithm:=ddpg", "-p", "total_steps:=30000",
+                         "-p", "warmup_steps:=30000", "-p", "eval_every:=0", "-p", "record:=true",
+                         "-p", "record_wait_s:=600.0", "-p", "transport_probe_calls:=0"), name="norec")
+    deadline = time.monotonic() + 60
+    while "recorder process (pid " not in proc.log() and time.monotonic() < deadline:
+        assert proc.proc.poll() is None, proc.log()[-4000:]
+        time.sleep(0.1)
+    os.kill(int(proc.log().split("recorder process (pid ")[1].split(",")[0]), signal.SIGKILL)
+    assert _wait(proc, 120) == 0, proc.log()[-4000:]
+    log = proc.log()
+    assert log.count("this run is no longer recorded") == 1 and "written off" not in log, log[-4000:]
+
+
 def test_sigkill_of_the_agent_leaves_a_closed_bag_with_every_logged_episode(launch, tmp_path):
     """record_process:=child: SIGKILL of the agent makes the kernel send SIGTERM to the recorder
     process (PR_SET_PDEATHSIG), which writes what it holds and closes the bag."""

@@ -356,7 +356,7 @@ class AgentNode(Node):
         proc, self.recorder_proc = self.recorder_proc, None
         topics = set(self._record_topics())
         nodes = [self] + (list(self.embedded.all) if self.embedded is not None else [])
-        for node in nodes:
+        for node in nodes if proc.poll() is None else []:     # a dead recorder acknowledges nothing
             for pub in node.publishers:
                 if pub.topic_name in topics:
                     try:
@@ -615,6 +615,11 @@ class AgentNode(Node):
 
     def _wait_for_recorder(self, with_transitions: bool) -> None:
         """record:=true: wait while record_window episodes are not yet in the bag (RecordingFlow)."""
+        if self.recorder_proc is not None and self.recorder_proc.poll() is not None:
+            self.log.error(f"the recorder process ended with {self.recorder_proc.returncode}; this run is no longer "
+                           f"recorded (see {self.run_dir.file('recorder.log')})")
+            self.flow = None
+            return
         topics = [self.episode_pub.topic_name] + ([self.transitions_pub.topic_name] if with_transitions else [])
         waited, ok = self.flow.wait(*topics, stop=self.stop_event)   # Ctrl-C is not held up
         if waited > 0:
