@@ -274,9 +274,7 @@ class AgentNode(Node):
                 self._start_recorder_process(self.run_id)
             if p.record:
                 from .recorder_node import RecordingFlow
-                recorder = (self.recorder.get_fully_qualified_name() if self.recorder is not None
-                            else f"/{self.get_name()}_recorder")
-                self.flow = RecordingFlow(self, recorder, window=p.record_window, timeout_s=p.record_wait_s)
+                self.flow = RecordingFlow(self, self.recorder_name, window=p.record_window, timeout_s=p.record_wait_s)
         except BaseException:
             if self.embedded is not None:
                 self.embedded.destroy()
@@ -310,6 +308,7 @@ class AgentNode(Node):
         from .recorder_node import RecorderNode
         self.recorder = RecorderNode(context=self.context, parameter_overrides=[
             Parameter(k, value=v) for k, v in self._recorder_params(run_id).items()])
+        self.recorder_name = self.recorder.get_fully_qualified_name()
         return self.recorder
 
     def _start_recorder_process(self, run_id: str) -> None:
@@ -318,8 +317,9 @@ class AgentNode(Node):
         import subprocess
         topics = self._record_topics()
         self._subscribers_before = {t: self.count_subscribers(t) for t in topics}
+        self.recorder_name = f"/{self.get_name()}_recorder"     # no namespace given: at the root
         cmd = [sys.executable, "-m", "comper_agent.recorder_node", "--ros-args",
-               "-r", f"__node:={self.get_name()}_recorder"]
+               "-r", f"__node:={self.recorder_name[1:]}"]
         for k, v in self._recorder_params(run_id).items():
             cmd += ["-p", f"{k}:={json.dumps(v)}"]   # JSON is YAML: strings stay strings, lists lists
         log_path = self.run_dir.file("recorder.log")
