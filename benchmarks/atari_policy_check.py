@@ -22,19 +22,20 @@ import numpy as np
 import torch
 import yaml
 
+from comper_agent.comper_node import ComperNode
 from comper_agent.core.comper import ComperLearner
-from comper_agent.core.config import ComperConfig, DQNConfig
 from comper_agent.offline import load_policy
-from comper_msgs_py.params import config_from_dict
 from comper_agent.run_io import resolve_checkpoint
+from comper_msgs_py.params import config_from_dict
 from comper_sim.core.config import SimConfig
 from comper_sim.core.envs import make_env
 
+
 def initial_network(config: dict) -> torch.nn.Module:
-    """The Q-network the run started from: the learner built from the run's config.yaml (same seed)."""
+    """The Q-network the run started from: the learner built from the run's config.yaml (same seed),
+    with the node's own variant -> learner config map."""
     learner = config["learner"]
-    cls = DQNConfig if learner["variant"] == "dqn" else ComperConfig
-    return ComperLearner(config_from_dict(cls, learner)).q
+    return ComperLearner(config_from_dict(ComperNode.LEARNER_CONFIGS[learner["variant"]], learner)).q
 
 
 def check(run: Path, states: int, explore: float, seed: int) -> dict:
@@ -81,8 +82,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     rows = []
-    print("| run | distinct greedy actions | most common (share) | mean max-min Q | initial network's most common (share) "
-          "| states where the greedy action is the initial network's |")
+    print("| run | distinct greedy actions | most common (share) | mean max-min Q "
+          "| initial network's most common (share) | states where the greedy action is the initial network's |")
     print("|---|---|---|---|---|---|")
     for run in args.runs:
         if not (run / "checkpoints" / "latest.pt").exists():
