@@ -198,7 +198,8 @@ def test_bad_inputs_change_nothing(tmp_path):
         np.testing.assert_array_equal(arrays_before[k], arrays_after[k])
     lease = mem.begin_reduce(3)
     for ids, preds in ((lease.identity_ids, np.array([1.0, np.nan, 2.0])),
-                       (lease.identity_ids, np.zeros(2)), (lease.identity_ids[::-1], np.zeros(3))):
+                       (lease.identity_ids, np.zeros(2)),
+                       (np.r_[lease.identity_ids[:2], lease.identity_ids[0]], np.zeros(3))):  # a repeated id
         with pytest.raises(MemoryInputError):
             mem.commit_reduce(lease.reduction_id, ids, preds)
     mem.commit_reduce(lease.reduction_id, lease.identity_ids, np.zeros(3))

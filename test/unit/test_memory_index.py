@@ -197,7 +197,7 @@ def test_grid_dense_cells_chunked_and_norm_growth(monkeypatch):
     later grows enough to force a coarser cell: still exact."""
     monkeypatch.setattr(index_mod, "_PAIR_CHUNK", 7)
     rng = np.random.default_rng(12)
-    mem = _mem("grid", delta=2.0)
+    mem = _mem("grid", delta=2.0, max_key_abs=1e30)  # 1e7 values: beyond the default bound
     ref = Reference(2.0)
     small = make(rng, 60)
     small.states[:] *= np.float32(0.05)
@@ -299,7 +299,7 @@ def test_grid_top_corner_cells_are_found():
                            value_labels=np.zeros(n, np.float32))
 
     for sign in (1.0, -1.0):
-        mem, ref = CompactMemory(MemoryConfig(delta=1e-4)), Reference(1e-4)
+        mem, ref = CompactMemory(MemoryConfig(delta=1e-4, max_key_abs=1e30)), Reference(1e-4)
         parts = [batch(sign * 2e6, seed=1), batch(sign * 1e6, seed=2), batch(sign * 5e5, seed=3)]
         for t in parts + parts:                      # the second pass re-stores every transition
             np.testing.assert_array_equal(mem.store(t).identity_ids, ref.store(t))

@@ -73,7 +73,9 @@ def test_torn_last_record_is_ignored(tmp_path):
     assert CompactMemory(cfg).stats()["identities"] == 8
 
 
-def test_corrupt_record_crc_is_ignored(tmp_path):
+def test_corrupt_complete_last_record_is_refused_unless_loss_accepted(tmp_path):
+    """A complete record whose CRC fails was written in full, so it was acknowledged: not a torn
+    write. Start-up refuses it (file unchanged) until wal_accept_loss says to drop it."""
     cfg = MemoryConfig(storage_dir=str(tmp_path), snapshot_every=0)
     mem = CompactMemory(cfg)
     rng = np.random.default_rng(3)
@@ -84,7 +86,13 @@ def test_corrupt_record_crc_is_ignored(tmp_path):
     with open(wal, "r+b") as f:
         f.seek(-5, os.SEEK_END)
         f.write(b"\xff")
-    assert CompactMemory(cfg).stats()["identities"] == 4
+    damaged = open(wal, "rb").read()
+    with pytest.raises(SnapshotError, match="wal_accept_loss"):
+        CompactMemory(cfg)
+    assert open(wal, "rb").read() == damaged
+    again = CompactMemory(MemoryConfig(storage_dir=str(tmp_path), snapshot_every=0, wal_accept_loss=True))
+    assert again.stats()["identities"] == 4
+    assert len(glob.glob(os.path.join(tmp_path, "wal-*.log.damaged-*"))) == 1
 
 
 def test_periodic_snapshot_and_rotation(tmp_path):

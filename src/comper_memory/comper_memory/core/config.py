@@ -44,6 +44,21 @@ class MemoryConfig:
         "flush", "when a store is acknowledged: 'flush' (WAL written to the OS, survives a killed "
         "process), 'fsync' (also on disk, survives power loss), 'none' (buffered, may lose the tail)",
         choices=("flush", "fsync", "none"))
+    wal_accept_loss: bool = param(
+        False, "start even when a write-ahead-log record in the middle of the log is damaged: "
+        "replay keeps the records before it and drops it and everything after it (the damaged "
+        "file is first copied to <file>.damaged-<offset>, later log files are renamed "
+        "<file>.discarded). false: start-up stops with the offset and the number of records "
+        "that would be lost, and nothing is changed. A torn last record (the process was killed "
+        "while writing it, so it was never acknowledged) is always dropped, with a warning. Set "
+        "it for the one start that accepts the loss")
+    max_key_abs: float = param(
+        1e8, "largest magnitude of any key value (observation, action, reward; uint8 frames after "
+        "frame_scale); a store holding a larger value is refused whole with the transition and key "
+        "position named. It bounds the index's float64 rounding margin (at the bound: 0.25 % of "
+        "sqrt(delta) = 0.01 for 26-d keys), so one huge value cannot coarsen the index for every "
+        "later store. Leaves room for step counters in observations (1e8 steps)",
+        deviation="not in the thesis (inputs are unbounded there)", minimum=0.0, maximum=3e38)
     snapshot_every: int = param(
         10_000, "write a snapshot and rotate the WAL every this many logged operations (0: never)",
         minimum=0)

@@ -373,6 +373,7 @@ _GRID_BITS = 21
 _GRID_MAX = (1 << _GRID_BITS) - 2
 _EPS64 = float(np.finfo(np.float64).eps)
 _PAIR_CHUNK = 1 << 21  # candidate pairs expanded at once (bounds temporary memory)
+_GRID_HEADROOM = 16.0  # the grid spans this many times the fitted (2nd-98th percentile) extent
 
 
 def _expand(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -445,7 +446,9 @@ class GridIndex:
         self._set_projection(np.ascontiguousarray(q.T))
         self.max_key_norm = 0.0
         self.origin: np.ndarray | None = None
-        self.cell = 0.0
+        self.cell = np.zeros(self.m)            # side of the cells, per axis
+        self.zc0 = np.zeros(self.mf)            # stored projections are fl32(z - zc0)
+        self.clipped = 0                        # identities added outside the grid since the last build
         self.codes = np.zeros(0, np.int64)
         self.ids = np.zeros(0, np.int64)
         self.zs = np.zeros((0, self.mf), np.float32)
@@ -474,16 +477,27 @@ class GridIndex:
         return (self.r * (1.0 + self.e_o) + self._err()) * (1.0 + 1e-7) + 1e-300
 
     def _radius_proj(self) -> float:
-        """Radius in the mf-d filter space containing every stored point within r of a query:
-        |P(x - y)| <= |x - y| (1 + e_o); the float64 rounding of z (``_err`` per coordinate,
-        sqrt(mf) of it in norm) and the float32 rounding of stored projections (|z| <= |x| (1 + e_o))."""
-        cast = 2.0 * _U32 * (self.max_key_norm * (1.0 + self.e_o) + 1.0)
+        """Radius in the mf-d filter space containing every point within r of a query, both in
+        float64: |P(x - y)| <= |x - y| (1 + e_o), plus the float64 rounding of z (``_err`` per
+        coordinate, sqrt(mf) of it in norm, for query and point)."""
         err = self._err() * float(np.sqrt(self.mf))
-        return (self.r * (1.0 + self.e_o) + err + cast) * (1.0 + 1e-7)
+        return (self.r * (1.0 + self.e_o) + err) * (1.0 + 1e-7)
 
-    def _near(self, zq: np.ndarray, zc: np.ndarray) -> np.ndarray:
-        """Conservative projected-distance filter (never drops a point within r)."""
-        d = zq - zc
+    def _near(self, zq: np.ndarray, zs: np.ndarray) -> np.ndarray:
+        """Conservative filter of stored points (never drops a point within r): zq float64
+        projections of the queries, zs the stored fl32(z - zc0). The float32 rounding of a stored
+        point is at most 2^-24 |z - zc0| per coordinate, so each candidate's radius carries its own
+        rounding (a point far from the others, e.g. a huge key value, widens only its own radius)."""
+        zs64 = zs.astype(np.float64)
+        d = (zq - self.zc0) - zs64
+        d2 = np.einsum("ij,ij->i", d, d)
+        cast = 2.0 * _U32 * (np.sqrt(np.einsum("ij,ij->i", zs64, zs64)) + 1.0)
+        rp = self._radius_proj() + cast * (1.0 + 1e-7)
+        return d2 <= rp * rp * (1.0 + 1e-9) + 1e-300
+
+    def _near64(self, zi: np.ndarray, zj: np.ndarray) -> np.ndarray:
+        """The same filter between two float64 projections (pairs inside one batch)."""
+        d = zi - zj
         d2 = np.einsum("ij,ij->i", d, d)
         rp = self._radius_proj()
         return d2 <= rp * rp * (1.0 + 1e-9) + 1e-300
@@ -506,22 +520,36 @@ class GridIndex:
         return z
 
     def _fit_grid(self, z: np.ndarray) -> None:
+        """Per-axis cells over a robust extent: the 2nd-98th percentile range of the points,
+        widened _GRID_HEADROOM-fold around its centre (so keys may drift far before they leave
+        the grid, and one outlying value cannot stretch the cells); never finer than the
+        exactness bound ``_min_cell``. Points outside are clipped into the edge cells (still
+        exact) and counted in ``clipped``, which triggers a re-fit (``maybe_rebuild``)."""
         c = self._min_cell()
-        z = z[:, :self.m]
         if len(z):
-            lo, hi = z.min(axis=0), z.max(axis=0)
-            span = float((hi - lo).max())
-            c = max(c, span / (_GRID_MAX - 4))
-            self.origin = lo - 2.0 * c
+            sub = z if len(z) <= 20000 else z[np.random.default_rng(self.seed).choice(
+                len(z), 20000, replace=False)]
+            zc = sub[:, :self.m]
+            lo, hi = np.quantile(zc, [0.02, 0.98], axis=0) if len(zc) >= 16 else (
+                zc.min(axis=0), zc.max(axis=0))
+            span = np.maximum(hi - lo, 0.0)
+            cell = np.maximum(c, span * _GRID_HEADROOM / (_GRID_MAX - 4))
+            self.origin = (lo + hi) / 2.0 - cell * (_GRID_MAX / 2.0)
+            self.zc0 = np.median(sub, axis=0)
         else:
-            self.origin = np.zeros(self.m)
-        self.cell = c
+            cell = np.full(self.m, c)
+            self.origin = -cell * (_GRID_MAX / 2.0)
+            self.zc0 = np.zeros(self.mf)
+        self.cell = cell
 
     def _code(self, z: np.ndarray) -> np.ndarray:
         return (self._cells(z) << self._shift).sum(axis=1)
 
+    def _raw_cells(self, z: np.ndarray) -> np.ndarray:
+        return np.floor((z[:, :self.m] - self.origin) / self.cell)
+
     def _cells(self, z: np.ndarray) -> np.ndarray:
-        t = np.floor((z[:, :self.m] - self.origin) / self.cell)
+        t = self._raw_cells(z)
         np.clip(t, 0, _GRID_MAX, out=t)
         return t.astype(np.int64)
 
@@ -547,7 +575,7 @@ class GridIndex:
             nrm = float(np.sqrt(np.einsum("ij,ij->i", keys, keys, dtype=np.float64).max()))
             if nrm > self.max_key_norm:
                 self.max_key_norm = nrm
-                if self.origin is not None and self._min_cell() > self.cell:
+                if self.origin is not None and self._min_cell() > float(self.cell.min()):
                     self.rebuild(refit=False)  # a larger key needs a coarser cell
         z = self._zproj(keys)
         if self.origin is None:
@@ -557,9 +585,11 @@ class GridIndex:
     def add(self, ids: np.ndarray, z: np.ndarray) -> None:
         if not len(ids):
             return
+        raw = self._raw_cells(z)
+        self.clipped += int(((raw < 0) | (raw > _GRID_MAX)).any(axis=1).sum())
         codes = self._code(z)
         o = np.argsort(codes, kind="stable")
-        codes, ids, z32 = codes[o], np.asarray(ids, np.int64)[o], z[o].astype(np.float32)
+        codes, ids, z32 = codes[o], np.asarray(ids, np.int64)[o], (z[o] - self.zc0).astype(np.float32)
         pos = np.searchsorted(self.scodes, codes, side="right")
         self.scodes = np.insert(self.scodes, pos, codes)
         self.sids = np.insert(self.sids, pos, ids)
@@ -586,6 +616,9 @@ class GridIndex:
         n = self.ntotal
         entries = len(self.codes) + len(self.scodes)
         grow = n >= self.min_train and n >= self.rebuild_growth * max(self.n_at_build, 1)
+        # keys that left the fitted extent (drift, outliers): re-fit once they are a quarter of
+        # the identities at the last build (amortised O(log n) per identity, whatever the keys do)
+        grow = grow or self.clipped >= max(256, self.n_at_build // 4)
         if force or grow or self.stale > max(1024, entries // 4):
             self.rebuild(refit=force or grow)
             return True
@@ -606,6 +639,11 @@ class GridIndex:
                 X = X @ R.T
             else:
                 R = None
+            # robust directions: each column winsorised at its 1st / 99th percentile, so a few
+            # outlying keys (one huge value) cannot take over an axis (speed only, never results)
+            if len(X) >= 100:
+                lo, hi = np.quantile(X, [0.01, 0.99], axis=0)
+                np.clip(X, lo, hi, out=X)
             X -= X.mean(axis=0)
             w, V = np.linalg.eigh(X.T @ X)
             top = V[:, np.argsort(w)[::-1][:self.mf]].T  # [mf, d] orthonormal rows, largest first
@@ -621,10 +659,11 @@ class GridIndex:
         if refit or self.origin is None:
             self._fit_grid(z)
         else:
-            self.cell = max(self.cell, self._min_cell())
+            self.cell = np.maximum(self.cell, self._min_cell())
         codes = self._code(z) if n else np.zeros(0, np.int64)
+        self.clipped = 0
         o = np.argsort(codes, kind="stable")
-        self.codes, self.ids, self.zs = codes[o], ids[o], z[o].astype(np.float32)
+        self.codes, self.ids, self.zs = codes[o], ids[o], (z[o] - self.zc0).astype(np.float32)
         self.scodes = np.zeros(0, np.int64)
         self.sids = np.zeros(0, np.int64)
         self.szs = np.zeros((0, self.mf), np.float32)
@@ -719,7 +758,7 @@ class GridIndex:
             j = order[pos]
             keep = j < i
             i, j = i[keep], j[keep]
-            keep = self._near(z[i], z[j])
+            keep = self._near64(z[i], z[j])
             pis.append(i[keep])
             pjs.append(j[keep])
         return np.concatenate(pis), np.concatenate(pjs)

@@ -8,7 +8,9 @@ multi-threaded executor.
 from __future__ import annotations
 
 import glob
+import logging
 import os
+import shutil
 import threading
 import time
 from dataclasses import dataclass
@@ -150,8 +152,12 @@ class CompactMemory:
     """The compact memory (see module docstring and docs/memory.md)."""
 
     def __init__(self, config: MemoryConfig | None = None, key_size: int | None = None, *,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic,
+                 log: Callable[[str], None] | None = None):
+        """log(text): where start-up warnings go (a torn WAL tail dropped, leftovers of an
+        interrupted snapshot, accepted WAL loss); default the ``comper_memory`` Python logger."""
         self.config = (config or MemoryConfig()).validate()
+        self._log = log or logging.getLogger("comper_memory").warning
         self.expected_key_size = key_size
         # config.index_engine chooses; tests and benchmarks may force 'grid' | 'ivf' here
         self.index_engine: str | None = None
@@ -310,7 +316,7 @@ class CompactMemory:
                            steps=a["first_step"][slots])
 
     # ================================================================== validation
-    def _validate_store(self, t: Transitions) -> tuple[Transitions, np.ndarray]:
+    def _validate_store(self, t: Transitions, replay: bool = False) -> tuple[Transitions, np.ndarray]:
         if not isinstance(t, Transitions):
             raise MemoryInputError(f"store expects a Transitions batch, got {type(t).__name__}")
         n = len(t)
@@ -357,6 +363,19 @@ class CompactMemory:
         keys = transition_keys(clean, self.config.frame_scale)
         if not np.isfinite(keys).all():
             raise MemoryInputError("store: keys hold NaN or Inf (values overflow float32)")
+        bound = self.config.max_key_abs
+        if not replay and keys.size:  # replay: the record was accepted under its own bound
+            mag = np.abs(keys).max(axis=1)
+            if float(mag.max()) > bound:
+                i = int(np.argmax(mag > bound))
+                j = int(np.argmax(np.abs(keys[i]) > bound))
+                obs = int(np.prod(t.obs_shape, dtype=np.int64))
+                part = ("state" if j < obs else "action" if j < key - obs - 1 else
+                        "reward" if j == key - obs - 1 else "next_state")
+                raise MemoryInputError(
+                    f"store: transition {i} has key value {float(keys[i, j]):g} ({part}, key position "
+                    f"{j}) beyond max_key_abs ({bound:g}); nothing of this batch was stored (raise "
+                    f"max_key_abs or rescale the observations)")
         return clean, keys
 
     # ================================================================== store
@@ -553,8 +572,9 @@ class CompactMemory:
             lids, _ = self.leases[rid]
             ids = np.asarray(identity_ids, dtype=np.int64).reshape(-1)
             preds = np.asarray(predictions)
-            if not np.array_equal(ids, lids):
-                raise LeaseError(f"commit_reduce: identity_ids differ from those of lease {rid}")
+            if len(ids) != len(lids) or not np.array_equal(np.sort(ids), np.sort(lids)):
+                raise LeaseError(f"commit_reduce: identity_ids differ from those of lease {rid} "
+                                 f"({len(lids)} ids, any order; got {len(ids)})")
             if preds.shape != (len(ids),) or preds.dtype.kind not in "fiu":
                 raise MemoryInputError(f"commit_reduce: predictions must have shape ({len(ids)},), "
                                        f"got {preds.shape} {preds.dtype}")
@@ -714,6 +734,7 @@ class CompactMemory:
         sch = meta.get("schema")
         if sch is not None and self.expected_key_size is not None and sch["key_size"] != self.expected_key_size:
             raise st.SnapshotError(f"snapshot key size {sch['key_size']} differs from {self.expected_key_size}")
+        self._check_counters(arrays, meta)
         self._reset_state()
         for k, v in meta["counters"].items():
             setattr(self, k, int(v))
@@ -762,9 +783,31 @@ class CompactMemory:
         with self._lock:
             arrays, meta = st.read_snapshot(path)
             self._check_arrays(arrays)
+            seq = self.wal_sequence
             self._restore(arrays, meta)
             if self._wal is not None:
+                # the restore is an operation at the current log position: the new snapshot keeps
+                # the sequence monotone, so the older log files it replaces are never replayed
+                # over it after a kill between the snapshot and their deletion
+                self.wal_sequence = max(seq, self.wal_sequence)
                 self._checkpoint()
+
+    @staticmethod
+    def _check_counters(arrays: dict[str, np.ndarray], meta: dict) -> None:
+        """The metadata must agree with the arrays (a hand-edited next_id would hand out ids that
+        exist already; format-1 manifests carry no checksum of their own)."""
+        c = meta.get("counters")
+        names = ("next_id", "next_reduction_id", "transitions_stored", "similarity_hits",
+                 "reductions", "sets_reduced", "evictions", "wal_sequence")
+        if not isinstance(c, dict) or any(not isinstance(c.get(k), int) or c[k] < 0 for k in names):
+            raise st.SnapshotError("snapshot counters are missing or negative")
+        ids = arrays.get("id")
+        if ids is not None and len(ids):
+            if c["next_id"] <= int(ids.max()) or len(np.unique(ids)) != len(ids):
+                raise st.SnapshotError(f"snapshot metadata next_id {c['next_id']} does not exceed the "
+                                       f"largest identity id {int(ids.max())} (or ids repeat)")
+            if c["transitions_stored"] < int(arrays["count"].sum()):
+                raise st.SnapshotError("snapshot metadata transitions_stored is below the stored counts")
 
     @staticmethod
     def _check_arrays(arrays: dict[str, np.ndarray]) -> None:
@@ -788,25 +831,95 @@ class CompactMemory:
     def _open_storage(self) -> None:
         d = self.config.storage_dir
         os.makedirs(d, exist_ok=True)
-        if os.path.exists(os.path.join(self._snapshot_dir(), "manifest.json")):
+        self._recover_snapshot_dir()
+        if os.path.lexists(self._snapshot_dir()):
             arrays, meta = st.read_snapshot(self._snapshot_dir())
             self._check_arrays(arrays)
             self._restore(arrays, meta)
-        for path in self._wal_files():
-            for seq, kind, arr in st.read_wal(path):
+        self._replay_wal()
+        files = self._wal_files()
+        path = files[-1] if files else os.path.join(d, f"wal-{self.wal_sequence + 1:016d}.log")
+        self._wal = st.WriteAheadLog(path, self.config.durability)
+
+    def _recover_snapshot_dir(self) -> None:
+        """Finish or undo a snapshot write that a kill interrupted (storage_dir only).
+
+        A checkpoint writes ``snapshot.tmp-<pid>``, renames ``snapshot`` to ``snapshot.old-<pid>``,
+        renames the new one into place and deletes the old one; the log files it makes redundant
+        are deleted only after that. So: no ``snapshot`` but an old one -> the kill fell between
+        the two renames, the old one (the last good snapshot) goes back into place and the log
+        replays over it. Leftover tmp/old directories holding only snapshot files are removed;
+        anything else with such a name is left alone (with a warning)."""
+        snap = self._snapshot_dir()
+        olds = sorted(glob.glob(glob.escape(snap) + ".old-*"))
+        tmps = sorted(glob.glob(glob.escape(snap) + ".tmp-*"))
+        if not os.path.lexists(snap) and olds:
+            good = []
+            for o in olds:
+                try:
+                    _, meta = st.read_snapshot(o)
+                    good.append((int(meta["counters"]["wal_sequence"]), o))
+                except (st.SnapshotError, KeyError, TypeError, ValueError):
+                    continue
+            if good:
+                _, best = max(good)
+                os.rename(best, snap)
+                self._log(f"storage: the last snapshot write was interrupted; restored the previous "
+                          f"snapshot {os.path.basename(best)} -> snapshot (the log replays over it)")
+                olds.remove(best)
+        for left in olds + tmps:
+            if st.is_snapshot_dir(left) or (os.path.isdir(left) and not os.path.islink(left) and
+                                            set(os.listdir(left)) <= {"manifest.json", "state.npz"}):
+                st._remove_snapshot_dir(left)
+                self._log(f"storage: removed {os.path.basename(left)}, left by an interrupted snapshot write")
+            else:
+                self._log(f"storage: {left} is not a snapshot leftover; left untouched")
+
+    def _replay_wal(self) -> None:
+        """Replay every log file after the snapshot: loud about damage, never silently lossy."""
+        files = self._wal_files()
+        for i, path in enumerate(files):
+            scan = st.scan_wal(path)
+            last = i == len(files) - 1
+            damaged = scan.damage == "corrupt" or (scan.damage == "torn" and not last)
+            later = files[i + 1:]
+            if damaged:
+                later_records = sum(len(st.scan_wal(p).records) for p in later)
+                if not self.config.wal_accept_loss:
+                    more = (f" {later_records} more records are in {len(later)} later log files."
+                            if later else "")
+                    raise scan.corrupt_error(
+                        f"{more} To start anyway and lose the damaged record and everything after "
+                        f"it, restart once with -p wal_accept_loss:=true (MemoryConfig("
+                        f"wal_accept_loss=True)); the damaged file is then copied to "
+                        f"{os.path.basename(path)}.damaged-{scan.good_end} first.")
+            for seq, kind, arr in scan.records:
                 if seq <= self.wal_sequence:
                     continue
                 if seq != self.wal_sequence + 1:
                     raise st.SnapshotError(f"WAL {path}: record {seq} follows {self.wal_sequence} (gap)")
                 self._replay(seq, kind, arr)
-        files = self._wal_files()
-        path = files[-1] if files else os.path.join(d, f"wal-{self.wal_sequence + 1:016d}.log")
-        self._wal = st.WriteAheadLog(path, self.config.durability)
+            if damaged:
+                keep = f"{path}.damaged-{scan.good_end}"
+                shutil.copy2(path, keep)
+                st.truncate_wal(path, scan.good_end)
+                for p in later:
+                    os.rename(p, p + ".discarded")
+                self._log(f"storage: wal_accept_loss: dropped the damaged record at byte offset "
+                          f"{scan.good_end} of {path} and {scan.records_after} intact records after it"
+                          f"{f' plus {len(later)} later log files (renamed *.discarded)' if later else ''}; "
+                          f"the damaged file is kept as {keep}; replayed up to sequence {self.wal_sequence}")
+                return
+            if scan.damage == "torn":
+                st.truncate_wal(path, scan.good_end)
+                self._log(f"storage: dropped a torn last record of {path} ({scan.size - scan.good_end} "
+                          f"bytes at offset {scan.good_end}: the process stopped while writing it, so "
+                          f"it was never acknowledged); replayed up to sequence {self.wal_sequence}")
 
     def _replay(self, seq: int, kind: int, arr: dict[str, np.ndarray]) -> None:
         if kind == st.WAL_STORE:
             t = _arrays_to_t(arr)
-            clean, keys = self._validate_store(t)
+            clean, keys = self._validate_store(t, replay=True)
             if self.schema is None:
                 self._init_schema(clean)
             y = self.index.project(keys)
