@@ -185,26 +185,27 @@ def test_round_trip_two_phase_bad_inputs_snapshots_and_clean_stop(launch, client
     assert ok.new_identities == 8
 
     # --- snapshots through the service ---
-    snap = tmp_path / "snap1"
-    path, seq = memory.snapshot(str(snap))
+    snap = storage / "snapshots" / "snap1"  # named snapshots live under snapshot_root
+    path, seq = memory.snapshot("snap1")
     assert path == str(snap) and (snap / "manifest.json").exists()
     saved = memory.stats()
     memory.store(make_batch(0, 2, 50))
     assert memory.stats()["identities"] == 158
-    path, _ = memory.restore(str(snap))
+    path, _ = memory.restore(str(snap))  # an absolute path inside snapshot_root
     restored = memory.stats()
     for k in ("identities", "tm_sets", "rtm_size", "transitions_stored", "reductions", "sets_reduced"):
         assert restored[k] == saved[k], k
     t, ids, _ = memory.sample(70, seed=1)
     assert len(ids) == 70
     # a corrupted copy is refused with a clear message and changes nothing
-    bad_snap = tmp_path / "bad"
+    bad_snap = storage / "snapshots" / "bad"
     shutil.copytree(snap, bad_snap)
     raw = bytearray((bad_snap / "state.npz").read_bytes())
     raw[len(raw) // 2] ^= 0xFF
     (bad_snap / "state.npz").write_bytes(bytes(raw))
     refused(proc, lambda: memory.restore(str(bad_snap)), "checksum mismatch")
-    refused(proc, lambda: memory.restore(str(tmp_path / "nowhere")), "not a snapshot directory")
+    refused(proc, lambda: memory.restore("nowhere"), "not a snapshot directory")
+    refused(proc, lambda: memory.restore(str(tmp_path / "elsewhere")), "outside snapshot_root")
     assert memory.stats() == restored
     # '' = the node's storage directory (snapshot + WAL rotation)
     path, seq = memory.snapshot("")

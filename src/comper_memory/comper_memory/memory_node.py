@@ -144,7 +144,28 @@ class MemoryNode(Node):
                                 ">= 2 = MultiThreadedExecutor with that many threads (requests taken from "
                                 "DDS at once). Ignored when the node is embedded in another process",
                     read_only=True, integer_range=[IntegerRange(from_value=1, to_value=64, step=0)])).value)
-            self.memory = CompactMemory(self.config, self.key_size or None)
+            self.snapshot_service = str(self.declare_parameter(
+                "snapshot_service", "save_restore", ParameterDescriptor(
+                    description="what ~/snapshot lets peers do: save_restore (default), save (OP_RESTORE, "
+                                "which replaces the whole state, is refused) or off (both refused). "
+                                "ROS 2 services carry no caller identity: use SROS2 security enclaves "
+                                "where only some peers may call (docs/memory-service.md)",
+                    read_only=True, additional_constraints="one of: save_restore, save, off")).value)
+            if self.snapshot_service not in ("save_restore", "save", "off"):
+                raise ConfigError(f"snapshot_service {self.snapshot_service!r} is not one of "
+                                  "save_restore, save, off")
+            self.snapshot_root = str(self.declare_parameter(
+                "snapshot_root", "", ParameterDescriptor(
+                    description="the only directory ~/snapshot may write or read named snapshots in "
+                                "(a relative request path is taken under it; an absolute one must lie "
+                                "inside it after resolving links). '' = <storage_dir>/snapshots, or no "
+                                "named snapshots at all without storage_dir. It must not be the storage "
+                                "directory or contain it. An existing target is replaced only if it is a "
+                                "snapshot (manifest.json + state.npz and nothing else)",
+                    read_only=True)).value)
+            self._snapshot_root = self._check_snapshot_root()
+            self.memory = CompactMemory(self.config, self.key_size or None,
+                                        log=lambda text: self.get_logger().warning(text))
         except Exception:
             super().destroy_node()
             raise
@@ -322,22 +343,62 @@ class MemoryNode(Node):
         response.stats.header.stamp = self.get_clock().now().to_msg()
         return response
 
+    def _check_snapshot_root(self) -> str | None:
+        """The resolved snapshot_root (None: no named snapshots); refuses a root that is or holds
+        the live storage (a save there could replace the WAL and the live snapshot)."""
+        storage = os.path.realpath(self.config.storage_dir) if self.config.storage_dir else None
+        root = self.snapshot_root or (os.path.join(storage, "snapshots") if storage else "")
+        if not root:
+            return None
+        root = os.path.realpath(root)
+        if storage is not None:
+            if root == storage or os.path.commonpath([root, storage]) == root:
+                raise ConfigError(f"snapshot_root {root!r} is or contains storage_dir {storage!r}: "
+                                  "a snapshot there could replace the live log; choose another directory")
+            live = os.path.join(storage, "snapshot")
+            if os.path.commonpath([root, live]) == live:
+                raise ConfigError(f"snapshot_root {root!r} lies inside the live snapshot {live!r}")
+        return root
+
     def _default_snapshot_path(self) -> str:
         if not self.config.storage_dir:
-            raise _Refused("snapshot: empty path and the node has no storage_dir; give a path")
-        return os.path.join(os.path.abspath(self.config.storage_dir), "snapshot")
+            raise _Refused("snapshot: empty path and the node has no storage_dir; give a path "
+                           "under snapshot_root")
+        return os.path.join(os.path.realpath(self.config.storage_dir), "snapshot")
+
+    def _named_snapshot_path(self, path: str) -> str:
+        """A request path confined to snapshot_root (links resolved; '..' cannot leave it)."""
+        root = self._snapshot_root
+        if root is None:
+            raise _Refused(f"snapshot: path {path!r} refused: this node has no snapshot_root (set "
+                           "-p snapshot_root:=DIR or storage_dir); only the empty path (the node's own "
+                           "storage) is served")
+        if "\0" in path:
+            raise _Refused("snapshot: path holds a NUL character")
+        full = os.path.normpath(path if os.path.isabs(path) else os.path.join(root, path))
+        if os.path.islink(full):
+            raise _Refused(f"snapshot: path {path!r} is a symbolic link; refused")
+        full = os.path.join(os.path.realpath(os.path.dirname(full)), os.path.basename(full))
+        if full == root or os.path.commonpath([full, root]) != root:
+            raise _Refused(f"snapshot: path {path!r} is outside snapshot_root {root!r}; give a name "
+                           "(relative paths are taken under snapshot_root) or an absolute path inside it")
+        return full
 
     def _snapshot(self, request: Snapshot.Request) -> tuple[str, str]:
+        if self.snapshot_service == "off":
+            raise _Refused("snapshot: this node's snapshot service is off (snapshot_service off)")
         if request.op == Snapshot.Request.OP_SAVE:
             if request.path:
-                path = os.path.abspath(request.path)
+                path = self._named_snapshot_path(request.path)
                 self.memory.save_snapshot(path)
             else:  # snapshot into storage_dir and rotate the WAL
                 path = self._default_snapshot_path()
                 self.memory.checkpoint()
             return path, "saved"
         if request.op == Snapshot.Request.OP_RESTORE:
-            path = os.path.abspath(request.path) if request.path else self._default_snapshot_path()
+            if self.snapshot_service != "save_restore":
+                raise _Refused("snapshot: restore is off on this node (snapshot_service save)")
+            path = self._named_snapshot_path(request.path) if request.path else self._default_snapshot_path()
             if not os.path.isdir(path):
                 raise _Refused(f"snapshot: {path!r} is not a snapshot directory")
             self.memory.load_snapshot(path)
