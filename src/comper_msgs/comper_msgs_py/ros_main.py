@@ -7,13 +7,20 @@ rclpy.init, construct the node (a failure is one readable `cannot start: ...` li
 not a traceback), spin it on the executor chosen for it until Ctrl-C / SIGTERM / shutdown, then
 close and destroy it and exit 0.
 
-``graceful=True`` (the recorder): rclpy's own signal handlers are not installed (they shut the
-context down at once); SIGINT / SIGTERM only end the spin loop, so ``on_close`` still runs with a
-valid context and can take what the subscriptions hold (nothing received is dropped at a stop).
-Further signals are ignored (``PR_SET_PDEATHSIG`` can deliver its SIGTERM more than once; two were
-seen queued at one recorder). A close that takes longer than
-``close_timeout_s`` is ended by faulthandler's watchdog (a C thread: it works even when Python is
-stuck in C), which first writes every thread's stack to stderr; the exit status is then 1.
+Signals: rclpy's own signal handlers are not installed (they shut the context down from a
+signal-handling thread at an arbitrary moment: with them, a SIGTERM was occasionally ignored, or
+the close ran into ``RCLError: context is not valid`` and exited 1). serve_node installs its own
+SIGINT / SIGTERM handlers before rclpy.init; a signal only ends the spin loop (the executor
+waits at most 0.1 s per round), so ``on_close`` and ``destroy_node`` always run with a valid
+context, in the main thread, and the context is shut down last. A signal during construction
+stops the node right after it is built. Further signals are ignored (``PR_SET_PDEATHSIG`` can
+deliver its SIGTERM more than once; two were seen queued at one recorder). A close that takes
+longer than ``close_timeout_s`` is ended by faulthandler's watchdog (a C thread: it works even
+when Python is stuck in C), which first writes every thread's stack to stderr; the exit status
+is then 1. A signal that arrives before ``main()`` runs (while Python imports the node's
+modules) still has the default effect.
+
+``graceful`` is accepted for compatibility: every node now stops this way.
 """
 from __future__ import annotations
 
@@ -51,16 +58,15 @@ def serve_node(make_node: Callable[[], object], name: str, args=None, *,
     graceful, close_timeout_s: see the module docstring.
     """
     stop = threading.Event()
-    if graceful:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-        def _stop(*_):
-            if not stop.is_set():   # the watchdog is armed once: a repeated signal must not push it back
-                faulthandler.dump_traceback_later(close_timeout_s, exit=True)
-            stop.set()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, _stop)
-    else:
-        rclpy.init(args=args)
+
+    def _stop(*_):
+        if not stop.is_set():   # the watchdog is armed once: a repeated signal must not push it back
+            faulthandler.dump_traceback_later(close_timeout_s, exit=True)
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _stop)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = executor = None
     try:
         try:
@@ -72,19 +78,20 @@ def serve_node(make_node: Callable[[], object], name: str, args=None, *,
             on_ready(node)
         executor = executor_for(node) if executor_for is not None else default_executor(node)
         executor.add_node(node)
-        if graceful:
-            while not stop.is_set() and rclpy.ok(context=node.context):
-                executor.spin_once(timeout_sec=0.1)
-        else:
-            executor.spin()
+        while not stop.is_set() and rclpy.ok(context=node.context):
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        if executor is not None:
-            executor.shutdown(timeout_sec=5.0)
-        if node is not None:
-            if on_close is not None:
-                on_close(node)
-            node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            if executor is not None:
+                executor.shutdown(timeout_sec=5.0)
+            if node is not None:
+                if on_close is not None:
+                    on_close(node)
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
+            # our handlers stay (a late repeated signal must not kill the exiting process), and so
+            # does the watchdog a signal armed: an exit that hangs joining a thread is ended too
     return 0
