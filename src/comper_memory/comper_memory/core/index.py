@@ -373,6 +373,7 @@ _GRID_BITS = 21
 _GRID_MAX = (1 << _GRID_BITS) - 2
 _EPS64 = float(np.finfo(np.float64).eps)
 _PAIR_CHUNK = 1 << 21  # candidate pairs expanded at once (bounds temporary memory)
+_NORM_HEADROOM = 4.0   # cells are sized for keys up to this many times the largest norm seen
 _GRID_HEADROOM = 16.0  # the grid spans this many times the fitted (2nd-98th percentile) extent
 
 
@@ -449,6 +450,7 @@ class GridIndex:
         self.cell = np.zeros(self.m)            # side of the cells, per axis
         self.zc0 = np.zeros(self.mf)            # stored projections are fl32(z - zc0)
         self.clipped = 0                        # identities added outside the grid since the last build
+        self.scanned = 0                        # candidate pairs taken from neighbour cells (cost counter)
         self.codes = np.zeros(0, np.int64)
         self.ids = np.zeros(0, np.int64)
         self.zs = np.zeros((0, self.mf), np.float32)
@@ -470,11 +472,15 @@ class GridIndex:
         g = self.P @ self.P.T - np.eye(len(self.P))
         self.e_o = float(np.sqrt((g * g).sum())) + 1e-15
 
-    def _err(self) -> float:
-        return 2.0 * (self.key_dim + 2) * _EPS64 * (self.max_key_norm + 1.0) * 4.0
+    def _err(self, norm: float | None = None) -> float:
+        norm = self.max_key_norm if norm is None else norm
+        return 2.0 * (self.key_dim + 2) * _EPS64 * (norm + 1.0) * 4.0
 
-    def _min_cell(self) -> float:
-        return (self.r * (1.0 + self.e_o) + self._err()) * (1.0 + 1e-7) + 1e-300
+    def _min_cell(self, headroom: float = 1.0) -> float:
+        """Smallest exact cell side for keys up to ``headroom`` x the largest norm seen. Cells are
+        made for 4x the norm (``_NORM_HEADROOM``), so keys whose norm keeps growing (drift) force
+        a coarser cell (a rebuild) only each time their norm quadruples, not at every store."""
+        return (self.r * (1.0 + self.e_o) + self._err(self.max_key_norm * headroom)) * (1.0 + 1e-7) + 1e-300
 
     def _radius_proj(self) -> float:
         """Radius in the mf-d filter space containing every point within r of a query, both in
@@ -525,7 +531,7 @@ class GridIndex:
         the grid, and one outlying value cannot stretch the cells); never finer than the
         exactness bound ``_min_cell``. Points outside are clipped into the edge cells (still
         exact) and counted in ``clipped``, which triggers a re-fit (``maybe_rebuild``)."""
-        c = self._min_cell()
+        c = self._min_cell(_NORM_HEADROOM)
         if len(z):
             sub = z if len(z) <= 20000 else z[np.random.default_rng(self.seed).choice(
                 len(z), 20000, replace=False)]
@@ -659,7 +665,7 @@ class GridIndex:
         if refit or self.origin is None:
             self._fit_grid(z)
         else:
-            self.cell = np.maximum(self.cell, self._min_cell())
+            self.cell = np.maximum(self.cell, self._min_cell(_NORM_HEADROOM))
         codes = self._code(z) if n else np.zeros(0, np.int64)
         self.clipped = 0
         o = np.argsort(codes, kind="stable")
@@ -726,6 +732,7 @@ class GridIndex:
                                               (self.scodes, self.sids, self.szs)) if len(c)]
         spans = self._lookup([c for c, _, _ in levels], lo_c, hi_c, valid)
         cnt = sum((hi - lo).sum(axis=1) for lo, hi in spans)
+        self.scanned += int(cnt.sum())
         for s, e in self._query_chunks(cnt):
             qs, cs = [], []
             for (codes, ids, zz), (lo, hi) in zip(levels, spans):
@@ -749,6 +756,7 @@ class GridIndex:
         lo_c, hi_c, valid = self._ranges(self._cells(z))
         (lo, hi), = self._lookup([sc], lo_c, hi_c, valid)
         cnt = (hi - lo).sum(axis=1) - 1  # minus the item itself
+        self.scanned += int(cnt.sum())
         if int(cnt.sum()) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         pis, pjs = [], []

@@ -581,6 +581,13 @@ class CompactMemory:
             preds = preds.astype(np.float32)
             if not np.isfinite(preds).all():
                 raise MemoryInputError("commit_reduce: predictions hold NaN or Inf")
+            # any order is accepted; the commit is applied (and logged) in the lease's order, so
+            # the resulting state (RTM order, hence seeded samples) does not depend on it
+            in_lease = np.argsort(lids, kind="stable")
+            given = np.argsort(ids, kind="stable")
+            ordered = np.empty_like(preds)
+            ordered[in_lease] = preds[given]
+            ids, preds = lids.copy(), ordered
             slots = self._slots_of(ids)
             alive = slots >= 0
             in_tm = np.zeros(len(ids), dtype=bool)

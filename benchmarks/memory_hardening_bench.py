@@ -1,0 +1,190 @@
+"""Store latency of the compact memory with stationary, drifting and poisoned keys (issue 16).
+
+    . ./env.sh && python benchmarks/memory_hardening_bench.py                 # in-process + ROS
+    python benchmarks/memory_hardening_bench.py --no-ros --identities 20000   # in-process only
+
+Keys are 26-d (Hopper-like: obs 11, action 3, reward): the memory is filled to ``--identities``
+identities with batches of 1024, then ``--calls`` store calls of 64 transitions (48 new, 16
+re-stores of earlier ones) are timed one by one. Scenarios:
+
+* stationary: every value N(0, 1);
+* drifting: the first observation value is a step counter (it grows by one per transition, so
+  keys leave the index's fitted extent all the time);
+* poisoned: stationary, plus one transition whose key holds a value at the ``max_key_abs`` bound
+  (1e8 by default; larger values are refused), stored first and alive for the whole run.
+
+Then one store of 16,384 new transitions (26-d) into each filled memory. The ROS rows start
+``ros2 run comper_memory memory_node`` (default parameters) per scenario and time the same calls
+through a standalone MemoryClient; during the big store a second client thread calls
+``~/get_stats`` in a loop and the longest wait is printed. Ratios are against the stationary row
+of the same run.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from comper_msgs_py.arrays import Transitions
+
+OBS, ACT = 11, 3
+
+
+def make(rng, n, scenario, start):
+    s = rng.standard_normal((n, OBS)).astype(np.float32)
+    s2 = rng.standard_normal((n, OBS)).astype(np.float32)
+    if scenario == "drifting":
+        s[:, 0] = (start + np.arange(n)).astype(np.float32)
+        s2[:, 0] = s[:, 0] + 1
+    return Transitions(s, rng.uniform(-1, 1, (n, ACT)).astype(np.float32),
+                       rng.standard_normal(n).astype(np.float32), s2, np.zeros(n, bool), np.zeros(n, bool),
+                       value_labels=rng.standard_normal(n).astype(np.float32))
+
+
+def workload(scenario, identities, calls, bound, seed=0):
+    """(fill batches, timed batches of 64, big batch of 16384)."""
+    rng = np.random.default_rng(seed)
+    step = 0
+    fill = []
+    if scenario == "poisoned":
+        p = make(rng, 1, "stationary", 0)
+        p.states[0, 3] = np.float32(bound)
+        fill.append(p)
+    while sum(len(b) for b in fill) < identities:
+        fill.append(make(rng, 1024, scenario, step))
+        step += 1024
+    pool = Transitions.concatenate(fill[-4:])
+    timed = []
+    for _ in range(calls):
+        new = make(rng, 48, scenario, step)
+        step += 48
+        timed.append(Transitions.concatenate([new, pool.take(rng.integers(0, len(pool), 16))]))
+    big = make(rng, 16384, scenario, step)
+    return fill, timed, big
+
+
+def pct(x, q):
+    return float(np.percentile(np.asarray(x) * 1e3, q))
+
+
+def run_core(fill, timed, big):
+    from comper_memory.core import CompactMemory, MemoryConfig
+    mem = CompactMemory(MemoryConfig())
+    for b in fill:
+        mem.store(b)
+    lat = []
+    for b in timed:
+        t0 = time.perf_counter()
+        mem.store(b)
+        lat.append(time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    mem.store(big)
+    big_s = time.perf_counter() - t0
+    return {"p50": pct(lat, 50), "p99": pct(lat, 99), "big_s": big_s, "ids": mem.stats()["identities"]}
+
+
+def run_ros(fill, timed, big, log_dir, tag):
+    from comper_memory.client import MemoryClient
+    ros2 = shutil.which("ros2")
+    if ros2 is None:
+        sys.exit("no ros2 command on PATH: source env.sh first")
+    name = f"hardening_bench_{os.getpid()}_{tag}"
+    log = open(Path(log_dir) / f"{name}.log", "wb")
+    proc = subprocess.Popen([ros2, "run", "comper_memory", "memory_node", "--ros-args", "-r", f"__node:={name}",
+                             "-p", "stats_period_s:=0.0", "--log-level", "warn"],
+                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    client = MemoryClient.standalone(name, timeout=120.0)
+    other = MemoryClient.standalone(name, timeout=120.0)
+    try:
+        if not (client.wait_for_service(60.0) and other.wait_for_service(60.0)):
+            sys.exit(f"memory node did not come up: {(Path(log_dir) / f'{name}.log').read_text()}")
+        for b in fill:
+            client.store(b)
+        lat = []
+        for b in timed:
+            t0 = time.perf_counter()
+            client.store(b)
+            lat.append(time.perf_counter() - t0)
+        waits, done = [], threading.Event()
+
+        def poll():
+            while not done.is_set():
+                t0 = time.perf_counter()
+                other.stats()
+                waits.append(time.perf_counter() - t0)
+
+        th = threading.Thread(target=poll, daemon=True)
+        th.start()
+        time.sleep(0.05)
+        t0 = time.perf_counter()
+        client.store(big)
+        big_s = time.perf_counter() - t0
+        done.set()
+        th.join()
+        ids = client.stats()["identities"]
+    finally:
+        client.close()
+        other.close()
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGINT)
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+        log.close()
+    return {"p50": pct(lat, 50), "p99": pct(lat, 99), "big_s": big_s, "ids": ids,
+            "other_max_ms": max(waits) * 1e3 if waits else float("nan")}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--identities", type=int, default=20000)
+    ap.add_argument("--calls", type=int, default=300, help="timed store calls of 64 per scenario")
+    ap.add_argument("--no-ros", action="store_true", help="in-process core only")
+    args = ap.parse_args(argv)
+    from comper_memory.core import MemoryConfig
+    bound = MemoryConfig().max_key_abs
+    try:
+        from comper_msgs_py.blas import set_numpy_blas_threads
+        set_numpy_blas_threads(1)  # as the node (blas_threads 1)
+        import faiss
+        faiss.omp_set_num_threads(1)
+    except Exception:  # noqa: BLE001 - speed setting only
+        pass
+    paths = [("core", None)] + ([] if args.no_ros else [("ros", "ros")])
+    rows = {}
+    log_dir = tempfile.mkdtemp(prefix="hardening_bench_")
+    for scenario in ("stationary", "drifting", "poisoned"):
+        fill, timed, big = workload(scenario, args.identities, args.calls, bound)
+        for path, _ in paths:
+            r = run_core(fill, timed, big) if path == "core" else run_ros(fill, timed, big, log_dir, scenario)
+            rows[(path, scenario)] = r
+            print(f"[{path:4s}] {scenario:10s} identities {r['ids']:6d}  store(64) p50 {r['p50']:7.2f} ms  "
+                  f"p99 {r['p99']:7.2f} ms  store(16384) {r['big_s']:6.3f} s"
+                  + (f"  other client's longest wait {r['other_max_ms']:.0f} ms" if "other_max_ms" in r else ""),
+                  flush=True)
+    print()
+    print("| path | keys | store(64) p50 ms | store(64) p99 ms | p99 / stationary | 16,384-transition store s |"
+          + (" longest get_stats wait during it, ms |" if not args.no_ros else ""))
+    print("|---|---|---|---|---|---|" + ("---|" if not args.no_ros else ""))
+    for path, _ in paths:
+        base = rows[(path, "stationary")]["p99"]
+        for scenario in ("stationary", "drifting", "poisoned"):
+            r = rows[(path, scenario)]
+            extra = f" {r['other_max_ms']:.0f} |" if "other_max_ms" in r else (" - |" if not args.no_ros else "")
+            print(f"| {path} | {scenario} | {r['p50']:.2f} | {r['p99']:.2f} | {r['p99'] / base:.2f} | "
+                  f"{r['big_s']:.3f} |{extra}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
