@@ -1,14 +1,18 @@
 #!/usr/bin/env python3
-"""COMCACT vs DDPG learning benchmark through the ROS node suite.
+"""Learning benchmark through the ROS node suite: COMCACT vs DDPG (comcact_node, MuJoCo) and COMPER,
+COMPER-F, COMPER-M vs DQN (comper_node, vector tasks with discrete actions such as CartPole-v1).
 
-Each run is `ros2 run comper_agent comcact_node` (embedded bring-up: sim, memory and QT trainer
-nodes in the learner's process, talking over ROS) in its own subprocess with its own
+Each run is `ros2 run comper_agent comcact_node` or `comper_node` (embedded bring-up: sim, memory and
+QT trainer nodes in the learner's process, talking over ROS) in its own subprocess with its own
 ROS_DOMAIN_ID; at most --parallel runs at a time. Results come from each run's metrics.jsonl
-(evaluations: eval_episodes deterministic episodes every eval_every steps; the time split logged
-at the end of the run).
+(evaluations: eval_episodes greedy episodes every eval_every steps on a separate environment; the
+time split logged at the end of the run). The table gives, per (task, algorithm), the mean over
+seeds with a bootstrap 95% confidence interval of the seed means, and how many runs reached
+--target at any evaluation.
 
-    python benchmarks/learning_bench.py                                   # the full protocol (long!)
+    python benchmarks/learning_bench.py                                   # the MuJoCo protocol (long!)
     python benchmarks/learning_bench.py --tasks InvertedPendulum-v4 --seeds 1 --total-steps 20000
+    python benchmarks/learning_bench.py --tasks CartPole-v1 Acrobot-v1 --algorithms comper comper_f comper_m dqn
     python benchmarks/learning_bench.py --tasks Hopper-v4 --total-steps 5000 --eval-every 5000 --tag speed
 
 Writes <out>/<tag>/{results.md, results.json, curves_<task>.png, runs/<run_id>/..., logs/<run_id>.log}.
@@ -28,15 +32,20 @@ from pathlib import Path
 from comper_agent.run_io import MetricsLog
 
 ROOT = Path(__file__).resolve().parents[1]
+COMPER_ALGORITHMS = ["comper", "comper_f", "comper_m", "dqn"]
 DEFAULT_TASKS = ["Hopper-v4", "Walker2d-v4", "HalfCheetah-v4", "InvertedPendulum-v4", "InvertedDoublePendulum-v4"]
 
 
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tasks", nargs="+", default=DEFAULT_TASKS, help="gymnasium task ids")
-    ap.add_argument("--algorithms", nargs="+", default=["comcact", "ddpg"], choices=["comcact", "ddpg", "sb3_ddpg"],
-                    help="sb3_ddpg: Stable-Baselines3 DDPG with default settings, same evaluation protocol "
-                         "(benchmarks/sb3_reference.py; install it once with `make reference`)")
+    ap.add_argument("--algorithms", nargs="+", default=["comcact", "ddpg"],
+                    choices=["comcact", "ddpg", "sb3_ddpg", *COMPER_ALGORITHMS],
+                    help="comcact, ddpg: comcact_node (continuous actions); comper, comper_f, comper_m, dqn: "
+                         "comper_node (discrete actions); sb3_ddpg: Stable-Baselines3 DDPG with default settings, "
+                         "same evaluation protocol (benchmarks/sb3_reference.py; install it once with `make reference`)")
+    ap.add_argument("--target", type=float, default=None,
+                    help="a return to count runs that reach it at any evaluation (e.g. 475 for CartPole-v1)")
     ap.add_argument("--seeds", type=int, default=3, help="seeds per (task, algorithm): 0..N-1")
     ap.add_argument("--total-steps", type=int, default=50_000, help="steps per run (thesis: 50,000)")
     ap.add_argument("--eval-every", type=int, default=5_000, help="steps between evaluations (thesis: 5,000)")
@@ -68,9 +77,10 @@ def launch(args, base: Path, alg, task, seed, domain):
                "--total-steps", str(args.total_steps), "--eval-every", str(args.eval_every),
                "--eval-episodes", str(args.eval_episodes), "--run-dir", str(base / "runs" / rid)]
         return _spawn(base, rid, cmd, domain, alg, task, seed)
-    cmd = [shutil.which("ros2") or "ros2", "run", "comper_agent", "comcact_node", "--ros-args",
+    node, budget = ("comper_node", "total_frames") if alg in COMPER_ALGORITHMS else ("comcact_node", "total_steps")
+    cmd = [shutil.which("ros2") or "ros2", "run", "comper_agent", node, "--ros-args",
            "-p", f"algorithm:={alg}", "-p", f"env_id:={task}", "-p", f"seed:={seed}",
-           "-p", f"total_steps:={args.total_steps}", "-p", f"eval_every:={args.eval_every}",
+           "-p", f"{budget}:={args.total_steps}", "-p", f"eval_every:={args.eval_every}",
            "-p", f"eval_episodes:={args.eval_episodes}", "-p", f"runs_root:={base / 'runs'}",
            "-p", f"run_id:={rid}", "-p", "progress_period_s:=30.0"]
     extra = list(args.ros_args)
@@ -177,6 +187,17 @@ def at_step(evals, step):
     return cands[-1] if cands else None
 
 
+def bootstrap_ci(values, n_boot: int = 10_000, seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap 95% interval of the mean of `values` (resampling the runs)."""
+    import numpy as np
+    v = np.asarray(values, float)
+    if v.size < 2:
+        return float(v.mean()), float(v.mean())
+    idx = np.random.default_rng(seed).integers(0, v.size, size=(n_boot, v.size))
+    means = v[idx].mean(axis=1)
+    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
+
+
 def report(args, base: Path) -> dict:
     import numpy as np
     results = {"total_steps": args.total_steps, "eval_every": args.eval_every, "eval_episodes": args.eval_episodes,
@@ -205,8 +226,10 @@ def report(args, base: Path) -> dict:
                 algorithms += [r["algorithm"]] if r["algorithm"] not in algorithms else []
     args.tasks, args.algorithms = tasks, algorithms
     steps = [x for x in args.report_steps if x <= args.total_steps] or [args.total_steps]
-    lines = [f"| task | algorithm | seeds | " + " | ".join(f"return @ {x:,}" for x in steps) + " | steps/s |",
-             "|---|---|---|" + "---|" * len(steps) + "---|"]
+    reached_col = args.target is not None
+    lines = [f"| task | algorithm | seeds | " + " | ".join(f"return @ {x:,} [95% CI]" for x in steps)
+             + (f" | reached {args.target:g} | best eval" if reached_col else "") + " | steps/s |",
+             "|---|---|---|" + "---|" * len(steps) + ("---|---|" if reached_col else "") + "---|"]
     for t in args.tasks:
         for a in args.algorithms:
             runs = [r for r in results["runs"].values() if r["task"] == t and r["algorithm"] == a and r["evals"]]
@@ -219,10 +242,18 @@ def report(args, base: Path) -> dict:
                     if e is not None and e["step"] >= x - args.eval_every + 1:
                         vals.append(e["mean_return"])
                 if vals:
-                    cells.append(f"{np.mean(vals):.1f} +- {np.std(vals):.1f} (n={len(vals)})")
-                    row[str(x)] = {"mean": float(np.mean(vals)), "std": float(np.std(vals)), "n": len(vals)}
+                    lo, hi = bootstrap_ci(vals)
+                    cells.append(f"{np.mean(vals):.1f} [{lo:.1f}, {hi:.1f}] (n={len(vals)})")
+                    row[str(x)] = {"mean": float(np.mean(vals)), "std": float(np.std(vals)), "n": len(vals),
+                                   "ci95": [lo, hi], "values": [float(v) for v in vals]}
                 else:
                     cells.append("-")
+            if reached_col:
+                best = [max(e[1] for e in r["evals"]) for r in runs]
+                row["reached"] = int(sum(b >= args.target for b in best))
+                row["best"] = [float(b) for b in best]
+                cells.append(f"{row['reached']}/{len(runs)}")
+                cells.append(", ".join(f"{b:.0f}" for b in best) or "-")
             rates = [r["timers"]["steps_per_s"] for r in runs if r["timers"]]
             rate = f"{np.mean(rates):.1f}" if rates else "-"
             row["steps_per_s"] = float(np.mean(rates)) if rates else None
@@ -230,10 +261,11 @@ def report(args, base: Path) -> dict:
             lines.append(f"| {t} | {a} | {len(runs)} | " + " | ".join(cells) + f" | {rate} |")
     md = ["# Learning benchmark", "",
           f"{args.total_steps:,} steps per run, evaluation every {args.eval_every:,} steps "
-          f"({args.eval_episodes} deterministic episodes), mean +- std over seeds of the per-run mean "
-          "evaluation return; steps/s = the whole run including evaluations (sb3_ddpg: Stable-Baselines3 "
-          "DDPG, default settings, in-process gymnasium env, no ROS).", "", *lines, "",
-          "Time split per run (seconds; phases measured in comcact_node):", ""]
+          f"({args.eval_episodes} greedy episodes), mean over seeds of the per-run mean evaluation return with "
+          "a bootstrap 95% confidence interval of that mean (10,000 resamples of the seeds; with 3 seeds it "
+          "spans the seeds' range at most); steps/s = the whole run including evaluations (sb3_ddpg: "
+          "Stable-Baselines3 DDPG, default settings, in-process gymnasium env, no ROS).", "", *lines, "",
+          "Time split per run (seconds; phases measured in the learner node):", ""]
     for rid, r in results["runs"].items():
         if r["timers"]:
             ph = r["timers"]["phases"]

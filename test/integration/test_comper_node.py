@@ -165,3 +165,56 @@ def test_record_parameter_bags_the_run_with_every_episode_and_its_transitions(la
     assert [(e.episode_id, e.episode_return, e.length) for e in run.train_episodes()] == logged
     check = offline.cross_check(run)
     assert check["checked"] == 3 and not check["mismatches"] and check["missing"] == 0
+
+
+def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node, tmp_path):
+    """CartPole-v1 (vector observations): the same comper_node picks the mlp Q-network and the
+    classic_control profile by itself, stores float32 vector keys in the memory, evaluates greedy
+    episodes on a separate environment (~/evaluations, metrics.jsonl, summary.json)."""
+    from comper_msgs.msg import EvaluationResult
+    runs, evals = {}, {}
+    for alg in ("comper", "dqn"):
+        tag = f"v{alg}{os.getpid()}"
+        name = f"cp_{tag}"
+        evals[alg] = []
+        ros_node.create_subscription(EvaluationResult, f"/{name}/evaluations", evals[alg].append, SUMMARY_QOS)
+        extra = ["-p", f"algorithm:={alg}", "-p", "total_frames:=1500", "-p", "eval_every:=500",
+                 "-p", "eval_episodes:=2", "-p", "learning_starts:=200", "-p", "checkpoint_every:=0"]
+        args = _args(tmp_path, alg, tag, *extra)
+        args[args.index(f"env_id:={GAME}")] = "env_id:=CartPole-v1"
+        runs[alg] = launch("comper_agent", "comper_node", *args, "-r", f"comper_node:__node:={name}", name=alg)
+    deadline = time.monotonic() + 200
+    while time.monotonic() < deadline and any(p.alive() for p in runs.values()):
+        spin_once(ros_node, 0.2)
+    for alg, proc in runs.items():
+        assert _wait(proc, 30) == 0, proc.log()[-4000:]
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and any(len(v) < 4 for v in evals.values()):
+        spin_once(ros_node, 0.05)
+    for alg, proc in runs.items():
+        log = proc.log()
+        assert "obs [4]" in log and "profile classic_control, mlp Q-network, adam" in log, log[-3000:]
+        cfg = yaml.safe_load((tmp_path / alg / "config.yaml").read_text())
+        assert cfg["q_network"] == "mlp" and cfg["profile"]["name"] == "classic_control"
+        assert cfg["learner"]["optimizer"] == "adam" and cfg["learner"]["learning_starts"] == 200  # -p wins
+        assert cfg["profile"]["values"]["lr"]["source"]
+        s = json.loads((tmp_path / alg / "summary.json").read_text())
+        assert s["frames"] == s["steps"] >= 1500 and s["updates"] > 300 and s["complete"]
+        steps = [e["step"] for e in s["evaluations"]]
+        assert steps[:4] == [0, 500, 1000, 1500] and steps[-1] == s["steps"], steps
+        assert all(1 <= len(r["returns"]) <= 2 for r in run_io.MetricsLog.read(tmp_path / alg / "metrics.jsonl", "eval"))
+        assert len(evals[alg]) >= 4 and evals[alg][0].global_step == 0
+    mem = json.loads((tmp_path / "comper" / "summary.json").read_text())["memory"]
+    assert mem["identities"] > 1000 and mem["rtm_size"] > 0
+
+
+def test_unknown_or_unsuitable_tasks_are_refused_with_one_line(launch, tmp_path):
+    for env_id, words in (("NoSuchTask-v0", "NoSuchTask-v0"), ("Pendulum-v1", "continuous actions")):
+        tag = f"bad{abs(hash(env_id)) % 10000}{os.getpid()}"
+        args = _args(tmp_path, tag, tag)
+        args[args.index(f"env_id:={GAME}")] = f"env_id:={env_id}"
+        proc = launch("comper_agent", "comper_node", *args, name=tag)
+        assert _wait(proc, 60) == 1
+        lines = [ln for ln in proc.log().splitlines() if "cannot start" in ln]
+        assert len(lines) == 1 and words in lines[0], proc.log()[-2000:]
+        assert "Traceback" not in proc.log()

@@ -61,7 +61,7 @@ def test_dqn_variant_uses_target_network():
     assert lrn.q_target is not None and lrn.q.in_channels == 4
     b = frames_batch(channels=4, terminated=np.array([True] * 4 + [False] * 4))
     y = lrn.targets(b)
-    np.testing.assert_allclose(y[:4].numpy(), b.rewards[:4], atol=1e-6)
+    np.testing.assert_allclose(y[:4].numpy(), np.clip(b.rewards[:4], -1, 1), atol=1e-6)   # reward_clip clip
     before = lrn.loss(b)
     lrn.update(b)
     assert lrn.loss(b) < before
@@ -78,7 +78,7 @@ def test_terminated_masks_qt_bootstrap_and_labels():
     b.truncated[:] = True                                       # truncation never masks
     qt = np.full(4, 2.0, np.float32)
     y = lrn.targets(b, qt).numpy()
-    np.testing.assert_allclose(y, b.rewards + 0.99 * 2.0 * (~term), atol=1e-6)
+    np.testing.assert_allclose(y, np.clip(b.rewards, -1, 1) + 0.99 * 2.0 * (~term), atol=1e-6)
     v = lrn.value_labels(b)
     assert v.dtype == np.float32 and np.all(v[term] == 0) and np.all(v[~term] != 0)
     with torch.no_grad():
@@ -155,3 +155,107 @@ def test_learner_learns_a_state_dependent_greedy_policy(variant):
                                next_states=s, terminated=np.ones(32, bool), truncated=np.zeros(32, bool)),
                    np.zeros(32, np.float32) if variant == "comper" else None)
     assert greedy_right() == 1.0
+
+
+def _reference_clipped_error_grads(q_net, batch, y):
+    """DeepMind's gradient written out: sum over the batch of clip(Q(s_i, a_i) - y_i, -1, 1) dQ(s_i, a_i)/dtheta
+    (error clipping = the Huber loss's derivative with delta 1), independent of the learner's loss code."""
+    q_net.zero_grad(set_to_none=True)
+    q = q_net(torch.as_tensor(batch.states))
+    q_sa = q.gather(1, torch.as_tensor(batch.actions, dtype=torch.int64).reshape(-1, 1)).squeeze(1)
+    err = (q_sa - y).clamp(-1.0, 1.0).detach()
+    (err * q_sa).sum().backward()
+    return [p.grad.detach().clone() for p in q_net.parameters()]
+
+
+@pytest.mark.parametrize("reduction", ["sum", "mean"])
+def test_two_updates_equal_deepmind_rmsprop_on_the_summed_clipped_errors(reduction):
+    """Parameter by parameter: two learner updates (dqn-style target network, single frames, unclipped
+    and large rewards) equal a reference computation of DeepMind's RMSProp on the sum over the batch of
+    the clipped TD errors, rewards clipped to [-1, 1]: g and n momenta 0.95, p -= lr grad / sqrt(n - g^2 +
+    0.01). loss_reduction mean (with its rescaled constant) must give the same step as sum."""
+    import copy
+    cfg = config_from_dict(ComperConfig, {"variant": "comper_f", "seed": 3, "loss_reduction": reduction})
+    lrn = ComperLearner(cfg)
+    ref = copy.deepcopy(lrn.q)
+    ref.train(False)
+    ref_target = copy.deepcopy(lrn.q_target)
+    params = list(ref.parameters())
+    g = [torch.zeros_like(p) for p in params]
+    n = [torch.zeros_like(p) for p in params]
+    for k in range(2):
+        b = frames_batch(16, seed=10 + k)
+        b.rewards[:4] = [50.0, -7.0, 0.5, 0.0]             # clipped: 1, -1, 0.5, 0
+        b.terminated[-3:] = True
+        with torch.no_grad():
+            boot = ref_target(torch.as_tensor(b.next_states)).max(1).values
+            y = (torch.as_tensor(np.clip(b.rewards, -1, 1)) + 0.99 * boot
+                 * (1.0 - torch.as_tensor(b.terminated, dtype=torch.float32)))
+        grads = _reference_clipped_error_grads(ref, b, y)
+        with torch.no_grad():
+            for p, gi, ni, grad in zip(params, g, n, grads):
+                gi.mul_(0.95).add_(0.05 * grad)
+                ni.mul_(0.95).add_(0.05 * grad * grad)
+                p.sub_(2.5e-4 * grad / torch.sqrt(ni - gi * gi + 0.01))
+        lrn.update(b)
+        for (name, p), r in zip(lrn.q.named_parameters(), params):
+            torch.testing.assert_close(p.detach(), r.detach(), rtol=1e-5, atol=2e-7, msg=f"{name} after update {k + 1}")
+    moved = sum(float((p.detach() - q.detach()).abs().max()) for p, q in zip(lrn.q.parameters(),
+                                                                          copy.deepcopy(lrn.q_target).parameters()))
+    assert moved > 1e-4                                  # the comparison is not between two unmoved networks
+
+
+def test_reward_clip_modes_shape_the_target_and_nothing_else():
+    b = frames_batch(4, terminated=np.ones(4, bool))
+    b.rewards[:] = [50.0, -3.0, 0.5, 0.0]
+    want = {"clip": [1.0, -1.0, 0.5, 0.0], "sign": [1.0, -1.0, 1.0, 0.0], "none": [50.0, -3.0, 0.5, 0.0]}
+    for mode, expected in want.items():
+        lrn = ComperLearner(config_from_dict(ComperConfig, {"reward_clip": mode}))
+        y = lrn.targets(b, np.full(4, 5.0, np.float32)).numpy()
+        np.testing.assert_allclose(y, expected, atol=1e-6)          # terminated: no bootstrap
+    assert ComperConfig().reward_clip == "clip" and ComperConfig().loss_reduction == "sum"
+    assert b.rewards[0] == 50.0                                      # the batch keeps the raw reward
+
+
+def test_double_dqn_bootstraps_the_target_network_at_the_online_argmax():
+    lrn = ComperLearner(config_from_dict(ComperConfig, {"variant": "comper_f", "double_dqn": True, "seed": 1}))
+    with torch.no_grad():
+        for p in lrn.q_target.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    b = frames_batch(6)
+    ns = torch.as_tensor(b.next_states)
+    with torch.no_grad():
+        a_star = lrn.q(ns).argmax(1)
+        boot = lrn.q_target(ns)[torch.arange(6), a_star]
+    y = lrn.targets(b).numpy()
+    np.testing.assert_allclose(y, np.clip(b.rewards, -1, 1) + 0.99 * boot.numpy(), rtol=1e-5, atol=1e-6)
+
+
+def test_mlp_q_network_for_vector_observations_and_bad_shapes():
+    from comper_agent.core.comper import resolve_q_network
+    from comper_agent.core.networks import QMLP
+    lrn = ComperLearner(config_from_dict(ComperConfig, {"variant": "dqn"}), obs_shape=(4,), n_actions=2)
+    assert isinstance(lrn.q, QMLP) and lrn.network == "mlp"
+    a, q = lrn.act(np.zeros(4, np.float32), epsilon=0.0)
+    assert q.shape == (2,) and a in (0, 1)
+    assert resolve_q_network("auto", (84, 84)) == "nature_cnn" and resolve_q_network("auto", (4, 84, 84)) == "nature_cnn"
+    with pytest.raises(ValueError, match="1-D observations"):
+        resolve_q_network("mlp", (84, 84))
+    with pytest.raises(ValueError, match="84x84"):
+        resolve_q_network("nature_cnn", (6,))
+    with pytest.raises(ValueError, match="neither a vector nor frames"):
+        resolve_q_network("auto", (2, 3, 4, 5))
+
+
+def test_profiles_name_existing_fields_with_a_source_and_auto_follows_the_task():
+    from dataclasses import fields
+    from comper_agent.core.config import COMPER_PROFILES, resolve_profile
+    names = {f.name for f in fields(ComperConfig)}
+    for profile, values in COMPER_PROFILES.items():
+        for k, (v, source) in values.items():
+            assert k in names, (profile, k)
+            assert isinstance(source, str) and len(source) > 10, (profile, k)
+            config_from_dict(ComperConfig, {k: v})                   # a valid value
+    assert resolve_profile("auto", "ALE/Freeway-v5") == "thesis"
+    assert resolve_profile("auto", "CartPole-v1") == "classic_control"
+    assert resolve_profile("data_efficient", "ALE/Asterix-v5") == "data_efficient"

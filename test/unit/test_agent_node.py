@@ -20,7 +20,8 @@ _COMMON = {"bringup": "embedded", "episode_end": "standard", "runs_root": "runs"
            "record_window": 50, "record_wait_s": 60.0,
            "publish_transitions": True, "sim_node": "sim_node", "memory_node": "memory_node",
            "qt_trainer_node": "qt_trainer_node", "service_timeout_s": 120.0, "startup_timeout_s": 30.0,
-           "transport_probe_calls": 200, "prefetch_batches": 32, "reduce_overlap": False}
+           "transport_probe_calls": 200, "prefetch_batches": 32, "reduce_overlap": False,
+           "eval_episodes": 10, "eval_seed": -1}
 
 # every parameter the nodes declared before the refactoring, with its default (record: comcact only,
 # publish_transitions: comper only, before; both nodes have both now)
@@ -31,7 +32,8 @@ COMCACT = {**_COMMON, "algorithm": "comcact", "env_id": "InvertedPendulum-v4", "
 COMPER = {**_COMMON, "algorithm": "comper", "env_id": "ALE/Freeway-v5", "total_frames": 100_000, "max_steps": 0,
           "reduce_every": 100, "reduce_batch": 1_000, "qt_epochs": 0, "qt_targets": "local", "qt_wait_s": 5.0,
           "reducer": "auto", "restore_batch": True, "store_every": 4, "stats_every": 1_000,
-          "checkpoint_every": 5_000, "progress_period_s": 10.0}
+          "checkpoint_every": 5_000, "progress_period_s": 10.0,
+          "profile": "auto", "eval_every": -1, "eval_epsilon": 0.0}     # added with the vector tasks
 
 
 @pytest.mark.parametrize("cls, expected", [(ComcactNodeConfig, COMCACT), (ComperNodeConfig, COMPER)])

@@ -35,7 +35,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from comper_msgs.msg import EpisodeSummary, TransitionBatch
+from comper_msgs.msg import EpisodeSummary, EvaluationResult, TransitionBatch
 from comper_msgs.msg import QTModel as QTModelMsg
 from comper_msgs.srv import EnvInfo, GetStats, Reduce, Reset, Sample, Step, Store
 from comper_msgs_py.arrays import Transitions
@@ -135,6 +135,11 @@ class AgentRunConfig:
         "previous reduction")
     qt_wait_s: float = param(2.0, "after a reduction, seconds to wait for the QTModel of that version to "
                                   "arrive (variants with a QT target)", minimum=0.0)
+    eval_episodes: int = param(10, "full episodes per evaluation (greedy policy, a separate environment in "
+                                   "this process)", thesis="10 (chapter 6)", minimum=1)
+    eval_seed: int = param(
+        -1, "seed of the evaluation environment's resets (episode k of every evaluation starts from seed "
+        "eval_seed + k); -1 = seed + 1000", minimum=-1)
     sim_node: str = param("sim_node", "name of the simulation node")
     memory_node: str = param("memory_node", "name of the memory node (not used by the baselines)")
     qt_trainer_node: str = param("qt_trainer_node", "name of the QT trainer node (variants that train QT)")
@@ -172,7 +177,8 @@ class AgentNode(Node):
         super().__init__(node_name, **node_kwargs)
         self.p = p = declare_config(self, self.CONFIG)
         self.cfg = declare_config(self, self.LEARNER_CONFIGS[p.algorithm],
-                                  overrides={"variant": p.algorithm, **self.LEARNER_OVERRIDES})
+                                  overrides={"variant": p.algorithm, **self.LEARNER_OVERRIDES,
+                                             **self._profile_overrides()})
         if self.cfg.variant != p.algorithm:
             raise ValueError(f"variant:={self.cfg.variant} contradicts algorithm:={p.algorithm}; set algorithm only")
         self.stop_event = threading.Event()
@@ -183,6 +189,7 @@ class AgentNode(Node):
 
         # publishers / subscriptions (served by the background executor)
         self.episode_pub = self.create_publisher(EpisodeSummary, "~/episodes", SUMMARY_QOS)
+        self.eval_pub = self.create_publisher(EvaluationResult, "~/evaluations", SUMMARY_QOS)
         self.transitions_pub = self.create_publisher(TransitionBatch, "~/transitions", SUMMARY_QOS)
         self.ep_parts: list[Transitions] = []     # the current training episode's stored transitions
         self.qt_local = None
@@ -194,6 +201,11 @@ class AgentNode(Node):
         self._bring_up()
 
     # ------------------------------------------------------------------------------ hooks
+    def _profile_overrides(self) -> dict:
+        """Learner defaults chosen by a named profile (before the learner's parameters are declared);
+        the command line and parameter files still win."""
+        return {}
+
     def _configure(self) -> None:
         """Algorithm flags and node-specific publishers (before the bring-up)."""
 
@@ -555,6 +567,60 @@ class AgentNode(Node):
     def _resume_text(self) -> str:
         return f"resuming at step {self.step}" if self.step else "fresh run"
 
+    # ------------------------------------------------------------------------------ evaluation
+    def _open_eval_env(self, **sim_params) -> None:
+        """The evaluation environment: a second environment of the task inside this learner (the
+        protocol's "separate environment"), reset from eval_seed + k for episode k."""
+        from comper_sim.core import SimBridge, SimConfig
+        p = self.p
+        self.eval_seed = p.eval_seed if p.eval_seed >= 0 else self.cfg.seed + 1000
+        self.eval_bridge = SimBridge(SimConfig(env_id=p.env_id, seed=self.eval_seed, episode_end="standard",
+                                               run_id=self.run_id, **sim_params))
+        self.evals: list[dict] = []
+
+    def _eval_action(self, obs: np.ndarray):
+        """The evaluated (greedy) policy's action."""
+        raise NotImplementedError
+
+    def _eval_recorded(self, rec: dict) -> None:
+        """After an evaluation is logged: the node's progress.csv row."""
+
+    def evaluate(self) -> dict:
+        """eval_episodes full episodes of the greedy policy; published on ~/evaluations and ~/episodes
+        (source eval), logged to metrics.jsonl, TensorBoard and the console."""
+        p = self.p
+        rets, lens = [], []
+        skip = max(1, int(getattr(self, "frame_skip", 1)))
+        with self.ptimers("eval"):
+            for k in range(p.eval_episodes):
+                ret, n, res = self.eval_bridge.play_episode(self._eval_action, self.eval_seed + k)
+                rets.append(ret)
+                lens.append(n)
+                ep = EpisodeSummary(run_id=self.run_id, env_id=p.env_id, source="eval", episode_id=k,
+                                    episode_return=ret, length=n, frames=n * skip, terminated=bool(res.terminated),
+                                    truncated=bool(res.truncated), global_step=self.step,
+                                    global_frames=int(getattr(self, "frames", self.step)),
+                                    wall_time_s=self.wall_time())
+                ep.header.stamp = self.get_clock().now().to_msg()
+                self.episode_pub.publish(ep)
+        mean, std = float(np.mean(rets)), float(np.std(rets))
+        msg = EvaluationResult(run_id=self.run_id, algorithm=p.algorithm, env_id=p.env_id,
+                               global_step=self.step, episode_returns=[float(r) for r in rets],
+                               episode_lengths=[int(n) for n in lens], mean_return=mean, std_return=std)
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.eval_pub.publish(msg)
+        rec = {"step": self.step, "mean_return": mean, "std_return": std, "returns": rets,
+               "lengths": lens, "wall_time_s": self.wall_time()}
+        self.evals.append(rec)
+        self.metrics.write("eval", **rec)
+        self._eval_recorded(rec)
+        self.scalars.scalar("eval/mean_return", mean, self.step)
+        self.scalars.scalar("eval/std_return", std, self.step)
+        self.progress.evaluation(mean)
+        self.log.info(f"evaluation at step {self.step}: return {mean:.1f} +- {std:.1f} over "
+                      f"{len(rets)} episodes (lengths {min(lens)}-{max(lens)})")
+        return rec
+
     # ------------------------------------------------------------------------------ sim
     def _reset_env(self) -> np.ndarray:
         with self.ptimers("sim"):
@@ -742,6 +808,9 @@ class AgentNode(Node):
 
     # ------------------------------------------------------------------------------ shutdown
     def shutdown(self) -> None:
+        eb = getattr(self, "eval_bridge", None)
+        if eb is not None:
+            eb.close()
         if getattr(self, "recorder_proc", None) is not None:
             try:
                 self._stop_recorder_process()

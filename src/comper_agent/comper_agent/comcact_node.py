@@ -45,7 +45,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from comper_msgs.msg import EpisodeSummary, EvaluationResult
 from comper_msgs.srv import Sample, Store, StepMany
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.convert import (array_to_numpy, batch_to_transitions, numpy_to_array,
@@ -99,11 +98,6 @@ class ComcactNodeConfig(AgentRunConfig):
         "last reduction (returned by sample)", choices=("local", "rtm"))
     eval_every: int = param(5_000, "steps between evaluations (0 = never)", thesis="5,000 (chapter 6)",
                             minimum=0)
-    eval_episodes: int = param(10, "full deterministic episodes per evaluation", thesis="10 (chapter 6)",
-                               minimum=1)
-    eval_seed: int = param(
-        -1, "seed of the evaluation environment's resets (episode k of every evaluation starts from seed "
-        "eval_seed + k); -1 = seed + 1000", minimum=-1)
     checkpoint_every: int = param(
         0, "steps between checkpoints (0 = at every evaluation point); a final one is always written",
         minimum=0)
@@ -126,7 +120,6 @@ class ComcactNode(AgentNode):
     def _configure(self) -> None:
         self.comcact = self.uses_memory = self.uses_qt = self.p.algorithm == "comcact"
         self.reducer = "qt_trainer" if self.comcact else "none"
-        self.eval_pub = self.create_publisher(EvaluationResult, "~/evaluations", SUMMARY_QOS)
 
     def _connect(self) -> None:
         self.c_step_many = self.create_client(StepMany, f"/{self.p.sim_node.strip('/')}/step_many")
@@ -152,14 +145,9 @@ class ComcactNode(AgentNode):
         if not self.comcact:
             self.replay = ReplayBuffer(self.cfg.replay_size, self.obs_shape, (self.action_dim,),
                                        seed=self.cfg.seed)
-        from comper_sim.core import SimBridge, SimConfig
-        p = self.p
-        self.eval_seed = p.eval_seed if p.eval_seed >= 0 else self.cfg.seed + 1000
-        self.eval_bridge = SimBridge(SimConfig(env_id=p.env_id, seed=self.eval_seed, episode_end="standard",
-                                               action_out_of_range="clip", run_id=self.run_id))
+        self._open_eval_env(action_out_of_range="clip")
         self.rng = np.random.default_rng(self.cfg.seed + 7)   # warm-up actions
         self.since_reduce = 0
-        self.evals: list[dict] = []
         self.update_count = 0
 
     def _restore(self, state: dict) -> None:
@@ -383,43 +371,16 @@ class ComcactNode(AgentNode):
             self.scalars.scalars(self.last_update, self.step, prefix="train/")
 
     # ------------------------------------------------------------------------------ evaluation
-    def evaluate(self) -> dict:
-        p = self.p
-        rets, lens = [], []
-        with self.ptimers("eval"):
-            for k in range(p.eval_episodes):
-                ret, n, res = self.eval_bridge.play_episode(
-                    lambda obs: self.learner.act(np.asarray(obs, np.float32), explore=False), self.eval_seed + k)
-                rets.append(ret)
-                lens.append(n)
-                ep = EpisodeSummary(run_id=self.run_id, env_id=p.env_id, source="eval", episode_id=k,
-                                    episode_return=ret, length=n, frames=n, terminated=bool(res.terminated),
-                                    truncated=bool(res.truncated), global_step=self.step,
-                                    global_frames=self.step, wall_time_s=self.wall_time())
-                ep.header.stamp = self.get_clock().now().to_msg()
-                self.episode_pub.publish(ep)
-        mean, std = float(np.mean(rets)), float(np.std(rets))
-        msg = EvaluationResult(run_id=self.run_id, algorithm=p.algorithm, env_id=p.env_id,
-                               global_step=self.step, episode_returns=[float(r) for r in rets],
-                               episode_lengths=[int(n) for n in lens], mean_return=mean, std_return=std)
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.eval_pub.publish(msg)
-        rec = {"step": self.step, "mean_return": mean, "std_return": std, "returns": rets,
-               "lengths": lens, "wall_time_s": self.wall_time()}
-        self.evals.append(rec)
-        self.metrics.write("eval", **rec)
-        self.csv.write(step=self.step, wall_time_s=round(self.wall_time(), 2), eval_mean_return=mean,
-                       eval_std_return=std, episodes=self.episodes,
+    def _eval_action(self, obs):
+        return self.learner.act(np.asarray(obs, np.float32), explore=False)
+
+    def _eval_recorded(self, rec: dict) -> None:
+        self.csv.write(step=self.step, wall_time_s=round(self.wall_time(), 2), eval_mean_return=rec["mean_return"],
+                       eval_std_return=rec["std_return"], episodes=self.episodes,
                        last_train_return=self.progress.last_episode_return,
                        steps_per_s=round(self.progress.overall_rate(self.step), 1),
                        rtm_size=self.rtm_size if self.comcact else self.stored,
                        critic_loss=self.last_update.get("critic_loss"))
-        self.scalars.scalar("eval/mean_return", mean, self.step)
-        self.scalars.scalar("eval/std_return", std, self.step)
-        self.progress.evaluation(mean)
-        self.log.info(f"evaluation at step {self.step}: return {mean:.1f} +- {std:.1f} over "
-                      f"{len(rets)} episodes (lengths {min(lens)}-{max(lens)})")
-        return rec
 
     # ------------------------------------------------------------------------------ time split
     def _timer_notes(self, rec: dict, elapsed: float, steps: int) -> tuple[str, str]:
@@ -440,13 +401,6 @@ class ComcactNode(AgentNode):
         rec["sim_compute_us_per_step"] = 1e6 * sim_compute
         return "", (f"; simulation compute {1e6 * sim_compute:.0f} us/step "
                     f"(x {steps} = {sim_compute * steps:.1f} s of the 'sim' phase)")
-
-    # ------------------------------------------------------------------------------ shutdown
-    def shutdown(self) -> None:
-        eb = getattr(self, "eval_bridge", None)
-        if eb is not None:
-            eb.close()
-        super().shutdown()
 
 
 def main(args=None) -> int:

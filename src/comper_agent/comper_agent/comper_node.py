@@ -63,7 +63,7 @@ from comper_msgs_py.params import param
 from . import run_io
 from .agent_node import SUMMARY_QOS, AgentNode, AgentRunConfig, redefault, run_main
 from .bringup import call
-from .core.config import ComperConfig, DQNConfig
+from .core.config import COMPER_PROFILES, ComperConfig, DQNConfig, resolve_profile
 
 __all__ = ["ComperNode", "ComperNodeConfig", "FrameReplay", "protocol_summary", "main", "SUMMARY_QOS",
            "TRANSITIONS_QOS", "ALGORITHMS"]
@@ -82,12 +82,26 @@ class ComperNodeConfig(AgentRunConfig):
         "target network; chapter 7) | comper_m (QT target, sampling from TM; chapter 7) | dqn (baseline, "
         "Table 35: in-process replay, target network, no memory / QT nodes)", choices=ALGORITHMS)
     env_id: str = param(
-        "ALE/Freeway-v5", "ALE game (ALE/<Game>-v5): Freeway, Asterix, Seaquest, SpaceInvaders, BeamRider, "
-        "... (embedded: given to the sim node; external: must match the running sim node)")
+        "ALE/Freeway-v5", "task with discrete actions: an ALE game (ALE/<Game>-v5: Freeway, Asterix, Seaquest, "
+        "...) or a gymnasium task with vector observations (CartPole-v1, Acrobot-v1, MountainCar-v0); "
+        "embedded: given to the sim node; external: must match the running sim node")
+    profile: str = param(
+        "auto", "named set of learner defaults (core/config.py COMPER_PROFILES, each value with its source; "
+        "-p name:=value still wins): thesis = Algorithm 7 and Tables 32-35; data_efficient = short Atari "
+        "budgets (Adam, one update per step, 4 frames, double DQN; Dopamine's atari_100k DER settings); "
+        "classic_control = vector tasks; auto = thesis for ALE games, classic_control otherwise",
+        thesis="thesis (the only protocol the thesis runs is Atari)",
+        choices=("auto", "thesis", "data_efficient", "classic_control"))
+    eval_every: int = param(
+        -1, "agent steps between evaluations (eval_episodes greedy episodes on a separate environment; 0 = "
+        "never); -1 = never for ALE games (the protocol reports training episodes), 5,000 for vector tasks",
+        thesis="none for Atari (chapter 5 reports training episodes)", minimum=-1)
+    eval_epsilon: float = param(0.0, "epsilon of the evaluated policy (0 = greedy; Dopamine evaluates Atari "
+                                     "with 0.001)", minimum=0.0, maximum=1.0)
     progress_period_s: float = redefault(AgentRunConfig, "progress_period_s", 10.0)
     total_frames: int = param(
-        100_000, "frame budget counting skipped frames; the episode in progress when it is reached finishes",
-        thesis="100,000 (chapter 5)", minimum=1)
+        100_000, "frame budget counting skipped frames (a vector task has one frame per step); the episode in "
+        "progress when it is reached finishes", thesis="100,000 (chapter 5)", minimum=1)
     max_steps: int = param(0, "if > 0, also stop after this many agent steps, even mid-episode (tests, "
                               "smoke runs)", minimum=0)
     reduce_every: int = param(100, "agent steps between reductions + QT training (and whenever RTM is "
@@ -245,7 +259,7 @@ class ComperNode(AgentNode):
     # embedded nodes (docs/comper.md)
     OBS_DTYPE = np.uint8
     CSV_COLUMNS = ["step", "frames", "wall_time_s", "episodes", "last_train_return", "epsilon",
-                   "steps_per_s", "rtm_size", "tm_sets", "identities", "loss"]
+                   "steps_per_s", "rtm_size", "tm_sets", "identities", "loss", "eval_mean_return"]
     QT_START_HINT = " -p architecture:=comper -p reduce_batch:=1000"
     NAMES = {"comper": "COMPER (RTM sampling, QT target)", "comper_f": "COMPER-F (RTM sampling, DQN target network)",
              "comper_m": "COMPER-M (TM sampling, QT target)", "dqn": "DQN baseline (replay + target network)"}
@@ -253,8 +267,19 @@ class ComperNode(AgentNode):
     def __init__(self, node_name: str = "comper_node", **node_kwargs):
         super().__init__(node_name, **node_kwargs)
 
+    def _profile_overrides(self) -> dict:
+        self.profile = resolve_profile(self.p.profile, self.p.env_id)
+        return {k: v for k, (v, _) in COMPER_PROFILES[self.profile].items()}
+
     def _configure(self) -> None:
         p = self.p
+        self.is_atari = p.env_id.startswith("ALE/")
+        if not self.is_atari:
+            self.OBS_DTYPE = np.float32
+            if self.cfg.frame_stack != 1:
+                raise ValueError(f"frame_stack:={self.cfg.frame_stack} applies to ALE games; {p.env_id} has vector "
+                                 "observations (use frame_stack:=1, or profile:=classic_control)")
+        self.eval_every = p.eval_every if p.eval_every >= 0 else (0 if self.is_atari else 5_000)
         self.uses_memory = p.algorithm != "dqn"
         self.uses_qt = p.algorithm in ("comper", "comper_m")
         self.reducer = p.reducer if p.reducer != "auto" else ("memory" if p.algorithm == "comper_f" else "qt_trainer")
@@ -264,21 +289,36 @@ class ComperNode(AgentNode):
             raise ValueError(f"{p.algorithm} needs QT: use reducer:=qt_trainer (or auto)")
         self.sample_source = Sample.Request.SOURCE_TM if p.algorithm == "comper_m" else Sample.Request.SOURCE_RTM
 
+    def _sim_protocol(self) -> dict:
+        """The sim parameters the learner's settings fix (ALE: frames per observation, frame pooling)."""
+        if not self.is_atari:
+            return {}
+        return {"frame_stack": int(self.cfg.frame_stack), "frame_pooling": self.cfg.frame_pooling}
+
     def _embedded_params(self) -> tuple[dict, dict, dict]:
-        return ({"frame_stack": int(self.cfg.frame_stack)}, {"reduce_batch": int(self.p.reduce_batch)},
-                {"architecture": "comper"})
+        return (self._sim_protocol(), {"reduce_batch": int(self.p.reduce_batch)}, {"architecture": "comper"})
 
     def _check_env(self, info) -> None:
+        from .core.comper import resolve_q_network
         if not info.discrete:
-            raise ValueError(f"{info.env_id} has continuous actions; comper_node needs an ALE game "
-                             "(use comcact_node for continuous control)")
-        if int(info.num_actions) != self.cfg.n_actions:
-            raise ValueError(f"{info.env_id} has {info.num_actions} actions but n_actions:={self.cfg.n_actions}")
-        want = (84, 84) if self.cfg.frame_stack == 1 else (self.cfg.frame_stack, 84, 84)
-        if self.obs_shape != want:
-            raise ValueError(f"the sim serves observations {list(self.obs_shape)} but frame_stack:="
-                             f"{self.cfg.frame_stack} needs {list(want)}; start the sim with "
-                             f"-p frame_stack:={self.cfg.frame_stack}")
+            raise ValueError(f"{info.env_id} has continuous actions; comper_node needs discrete actions (an ALE "
+                             "game or a task such as CartPole-v1; use comcact_node for continuous control)")
+        self.n_actions = int(info.num_actions)
+        if self.cfg.n_actions and self.cfg.n_actions != self.n_actions:
+            raise ValueError(f"{info.env_id} has {info.num_actions} actions but n_actions:={self.cfg.n_actions} "
+                             "(0 = take the environment's)")
+        if self.is_atari:
+            want = (84, 84) if self.cfg.frame_stack == 1 else (self.cfg.frame_stack, 84, 84)
+            if self.obs_shape != want:
+                raise ValueError(f"the sim serves observations {list(self.obs_shape)} but frame_stack:="
+                                 f"{self.cfg.frame_stack} needs {list(want)}; start the sim with "
+                                 f"-p frame_stack:={self.cfg.frame_stack}")
+            spec = json.loads(info.spec_json or "{}")
+            pooling = spec.get("frame_pooling", "average")
+            if pooling in ("average", "max") and pooling != self.cfg.frame_pooling:
+                self.log.warning(f"the sim pools frames by {pooling} but frame_pooling:={self.cfg.frame_pooling} "
+                                 f"(start the sim with -p frame_pooling:={self.cfg.frame_pooling})")
+        self.network = resolve_q_network(self.cfg.q_network, self.obs_shape)
         self.frame_skip = max(1, int(info.frame_skip))
 
     # ------------------------------------------------------------------------------ setup / state
@@ -286,10 +326,16 @@ class ComperNode(AgentNode):
         from .core.comper import ComperLearner
         from .core.networks import configure_torch
         configure_torch(self.cfg.num_threads)
-        self.learner = ComperLearner(self.cfg)
+        self.learner = ComperLearner(self.cfg, self.obs_shape, self.n_actions)
         self.replay = None
         if not self.uses_memory:
-            self.replay = FrameReplay(self.cfg.replay_size, (84, 84), self.cfg.frame_stack, seed=self.cfg.seed)
+            if self.is_atari:
+                self.replay = FrameReplay(self.cfg.replay_size, (84, 84), self.cfg.frame_stack, seed=self.cfg.seed)
+            else:
+                from .core.replay import ReplayBuffer
+                self.replay = ReplayBuffer(self.cfg.replay_size, self.obs_shape, seed=self.cfg.seed)
+        if self.eval_every > 0:
+            self._open_eval_env(**self._sim_protocol())
         self.frames = 0              # emulator frames of the run, skipped ones included
         self.returns: list[float] = []
         self.restored = 0
@@ -304,15 +350,21 @@ class ComperNode(AgentNode):
         c = state["counters"]
         self.frames, self.updates = int(c["frames"]), int(c.get("updates", 0))
         self.returns = [float(x) for x in state.get("returns", [])]
+        if hasattr(self, "evals"):
+            self.evals = list(state.get("evals", []))
 
     def _state(self) -> dict:
         st = super()._state()
         st["counters"].update(frames=self.frames, updates=self.updates)
         st["returns"] = list(self.returns)
+        st["evals"] = list(getattr(self, "evals", []))
         return st
 
     def _run_config(self) -> dict:
         return {**super()._run_config(),
+                "profile": {"name": self.profile, "values": {k: {"value": v, "source": src} for k, (v, src)
+                                                              in COMPER_PROFILES[self.profile].items()}},
+                "q_network": self.network, "eval_every": self.eval_every,
                 "env": {"env_id": self.info.env_id, "observation_shape": list(self.obs_shape),
                         "num_actions": int(self.info.num_actions), "frame_skip": self.frame_skip,
                         "episode_end": self.episode_rule, "spec": json.loads(self.info.spec_json or "{}")}}
@@ -332,13 +384,18 @@ class ComperNode(AgentNode):
                 + (f"; reduce every {p.reduce_every} steps x {p.reduce_batch} sets via {self.reducer}"
                    if self.uses_memory else f"; replay {c.replay_size}")
                 + (f"; target network every {c.target_update_every} steps" if self.learner.uses_target_net else "")
-                + f"; torch threads {c.num_threads}")
+                + (f"; evaluation every {self.eval_every} steps x {p.eval_episodes} episodes" if self.eval_every else "")
+                + f"; profile {self.profile}, {self.network} Q-network, {c.optimizer} (loss {c.loss_reduction}), "
+                  f"reward clip {c.reward_clip}; torch threads {c.num_threads}")
 
     def _before_loop(self) -> None:
         p = self.p
         self.start_frames = self.frames
         self._schedule_checkpoints(p.checkpoint_every)
         self.next_stats = self._next_due(p.stats_every)
+        self.next_eval = self._next_due(self.eval_every)
+        if self.eval_every > 0 and self.step == 0:
+            self.evaluate()       # the untrained policy: the curve's first point
 
     def _loop(self) -> None:
         p = self.p
@@ -354,7 +411,12 @@ class ComperNode(AgentNode):
             if self.next_stats is not None and self.step >= self.next_stats:
                 self._memory_record()
                 self.next_stats += p.stats_every
+            if self.next_eval is not None and self.step >= self.next_eval:
+                self.evaluate()
+                self.next_eval += self.eval_every
             self._after_step()
+        if self.eval_every > 0 and not self.stop_event.is_set() and (not self.evals or self.evals[-1]["step"] != self.step):
+            self.evaluate()       # the final policy
         if self.uses_memory and self.pending:
             if self.pending[-1][6] is None:    # stopped mid-episode: label the last one too
                 self.pending[-1][6] = float(self.learner.act(self.pending[-1][3], epsilon=0.0)[1].max()) \
@@ -397,7 +459,7 @@ class ComperNode(AgentNode):
         self.ep_frames0, self.ep_frames = self.frames, 0
         self.new_episode = True
         self.ep_rows: list | None = None
-        if self.replay is not None:
+        if isinstance(self.replay, FrameReplay):
             self.replay.end_episode()
             if self._transitions_wanted():
                 self.ep_rows = []     # dqn stores nothing per episode: keep the rows for ~/transitions
@@ -428,7 +490,12 @@ class ComperNode(AgentNode):
         over = self._episode_over(term, trunc)
         if self.replay is not None:
             with self.ptimers("learner"):
-                self.replay.add(obs, a, float(r.reward), nxt, term, trunc, self.new_episode)
+                if self.is_atari:
+                    self.replay.add(obs, a, float(r.reward), nxt, term, trunc, self.new_episode)
+                else:
+                    self.replay.add(Transitions(states=obs[None], actions=np.array([a], np.float32),
+                                                rewards=np.array([r.reward], np.float32), next_states=nxt[None],
+                                                terminated=np.array([term]), truncated=np.array([trunc])))
             self.stored += 1
             if self.ep_rows is not None:
                 self.ep_rows.append([obs, a, float(r.reward), nxt, term, trunc, None, self.step])
@@ -595,6 +662,14 @@ class ComperNode(AgentNode):
             self.scalars.scalars(self.last_update, self.frames, prefix="train/")
 
 
+    # ------------------------------------------------------------------------------ evaluation
+    def _eval_action(self, obs):
+        return self.learner.act(np.asarray(obs, self.OBS_DTYPE), epsilon=self.p.eval_epsilon)[0]
+
+    def _eval_recorded(self, rec: dict) -> None:
+        self.csv.write(step=self.step, frames=self.frames, wall_time_s=round(self.wall_time(), 2),
+                       episodes=self.episodes, eval_mean_return=rec["mean_return"])
+
     # ------------------------------------------------------------------------------ time split / summary
     def _timer_notes(self, rec: dict, elapsed: float, steps: int) -> tuple[str, str]:
         accounted = sum(v["seconds"] for k, v in rec["phases"].items()
@@ -615,6 +690,8 @@ class ComperNode(AgentNode):
                    "updates": int(self.updates), "reductions": int(self.reductions),
                    "complete": bool(self.frames >= self.p.total_frames and not self.stop_event.is_set()),
                    "episode_returns": self.returns, "protocol": s,
+                   "evaluations": [{k: e[k] for k in ("step", "mean_return", "std_return")}
+                                   for e in getattr(self, "evals", [])],
                    "wall_time_s": self.wall_time(), "session_elapsed_s": elapsed,
                    "session_steps_per_s": steps / elapsed if elapsed > 0 else None,
                    "session_frames": frames, "memory": self.last_stats, "timers": timers,

@@ -1,17 +1,28 @@
 """COMPER / COMPER-F / COMPER-M / DQN learner (thesis Algorithm 7, appendix A; method.md 4).
 
-Q-network: :class:`~.networks.NatureCNN` (uint8 frames in, scaled to [0, 1] once inside).
-Optimiser: :class:`DQNRMSprop`, the RMSProp of Mnih et al. 2015 / Machado et al. 2018
-(Table 32): centred, the constant added inside the square root, no momentum term:
+Q-network (``q_network``): :class:`~.networks.NatureCNN` for ALE frames (uint8 in, scaled to
+[0, 1] once inside), :class:`~.networks.QMLP` for vector observations (classic control).
+Optimiser (``optimizer``): :class:`DQNRMSprop`, the RMSProp of Mnih et al. 2015 / Machado et al.
+2018 (Table 32): centred, the constant added inside the square root, no momentum term:
 
     g  <- rho_g g + (1 - rho_g) grad          (gradient momentum 0.95)
     n  <- rho_n n + (1 - rho_n) grad^2        (squared-gradient momentum 0.95)
     p  <- p - lr grad / sqrt(n - g^2 + min_sq_grad)      (min squared gradient 0.01)
 
 torch.optim.RMSprop(centered=True) differs: one decay for both averages, eps added outside the
-square root. Loss: Huber (delta 1) on Q(s, a_taken) - y, with
-    comper, comper_m:  y = r + gamma (1 - terminated) QT(tau)       (qt_targets passed in)
-    comper_f, dqn:     y = r + gamma (1 - terminated) max_a Q_target(s', a)
+square root. Or torch's Adam (the data-efficient profile).
+
+Loss: Huber (delta 1) on Q(s, a_taken) - y, **summed** over the batch (``loss_reduction`` sum:
+Algorithm 7 accumulates the gradient over the k sampled transitions before one step, as
+DeepMind's DQN, and Table 32's 0.01 is sized for that sum; with a batch mean every denominator
+sits at sqrt(0.01) and the CNN barely moves). ``mean`` divides by the batch size and, with
+rmsprop_dm, divides min_sq_grad by batch_size^2, which gives the identical step. Targets:
+
+    comper, comper_m:  y = clip(r) + gamma (1 - terminated) QT(tau)       (qt_targets passed in)
+    comper_f, dqn:     y = clip(r) + gamma (1 - terminated) max_a Q_target(s', a)
+                       (double_dqn: Q_target(s', argmax_a Q(s', a)))
+
+clip(r) is ``reward_clip`` (default [-1, 1]); the memory and every report keep the raw reward.
 The target network (comper_f, dqn) is copied by :meth:`ComperLearner.sync_target`, which the node
 calls every ``target_update_every`` agent steps. Epsilon counts frames (skipped ones included).
 """
@@ -26,9 +37,12 @@ from torch import nn
 from comper_msgs_py.arrays import Transitions
 
 from .config import ComperConfig
-from .networks import NatureCNN, hard_update
+from .networks import NatureCNN, QMLP, hard_update
 
-__all__ = ["DQNRMSprop", "ComperLearner", "linear_epsilon"]
+__all__ = ["DQNRMSprop", "ComperLearner", "linear_epsilon", "clip_rewards", "resolve_q_network"]
+
+ATARI_FRAME_SHAPE = (84, 84)
+ATARI_ACTIONS = 18
 
 
 class DQNRMSprop(torch.optim.Optimizer):
@@ -70,22 +84,66 @@ def linear_epsilon(frames: int, start: float = 1.0, end: float = 0.01, decay_fra
     return float(start + frac * (end - start))
 
 
+def clip_rewards(r: np.ndarray | torch.Tensor, mode: str):
+    """The learning signal's reward (``reward_clip``): clip = clamp to [-1, 1], sign, none = raw."""
+    if mode == "none":
+        return r
+    if isinstance(r, torch.Tensor):
+        return r.clamp(-1.0, 1.0) if mode == "clip" else torch.sign(r)
+    r = np.asarray(r, np.float32)
+    return np.clip(r, -1.0, 1.0) if mode == "clip" else np.sign(r)
+
+
+def resolve_q_network(choice: str, obs_shape: tuple) -> str:
+    """``q_network`` auto -> nature_cnn for image observations ([H, W] or [C, H, W]), mlp for 1-D ones;
+    an explicit choice that does not fit the observations is refused."""
+    shape = tuple(int(d) for d in obs_shape)
+    image = len(shape) in (2, 3)
+    if choice == "auto":
+        if len(shape) == 1:
+            return "mlp"
+        if image:
+            return "nature_cnn"
+        raise ValueError(f"observations of shape {list(shape)} are neither a vector nor frames; comper_node "
+                         "supports 1-D vector observations (mlp) and ALE frames (nature_cnn)")
+    if choice == "mlp" and len(shape) != 1:
+        raise ValueError(f"q_network:=mlp needs 1-D observations, the task has {list(shape)}")
+    if choice == "nature_cnn" and shape[-2:] != ATARI_FRAME_SHAPE:
+        raise ValueError(f"q_network:=nature_cnn needs 84x84 frames, the task has {list(shape)}")
+    return choice
+
+
 class ComperLearner:
-    def __init__(self, config: ComperConfig):
+    """The Q-learner of every comper_node variant.
+
+    obs_shape / n_actions: the task's (default: ALE single or stacked 84x84 frames per
+    ``frame_stack``, and ``n_actions`` or 18)."""
+
+    def __init__(self, config: ComperConfig, obs_shape: tuple | None = None, n_actions: int | None = None):
         self.config = c = config
         self.device = torch.device(c.device)
+        if obs_shape is None:
+            obs_shape = ATARI_FRAME_SHAPE if c.frame_stack == 1 else (c.frame_stack, *ATARI_FRAME_SHAPE)
+        self.obs_shape = tuple(int(d) for d in obs_shape)
+        self.n_actions = int(n_actions or c.n_actions or ATARI_ACTIONS)
+        self.network = resolve_q_network(c.q_network, self.obs_shape)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(c.seed)
-            self.q = NatureCNN(c.frame_stack, c.n_actions).to(self.device)
+            if self.network == "mlp":
+                self.q = QMLP(int(np.prod(self.obs_shape)), self.n_actions, c.mlp_hidden).to(self.device)
+            else:
+                self.q = NatureCNN(c.frame_stack, self.n_actions).to(self.device)
         self.q.eval()
         self.uses_target_net = c.variant in ("comper_f", "dqn")
         self.q_target = copy.deepcopy(self.q) if self.uses_target_net else None
         if self.q_target is not None:
             for p in self.q_target.parameters():
                 p.requires_grad_(False)
-        self.optimizer = DQNRMSprop(self.q.parameters(), lr=c.lr, grad_momentum=c.rms_grad_momentum,
-                                    sq_grad_momentum=c.rms_sq_grad_momentum,
-                                    min_sq_grad=c.rms_min_sq_grad)
+        if c.optimizer == "adam":
+            self.optimizer = torch.optim.Adam(self.q.parameters(), lr=c.lr, eps=c.adam_eps)
+        else:
+            self.optimizer = DQNRMSprop(self.q.parameters(), lr=c.lr, grad_momentum=c.rms_grad_momentum,
+                                        sq_grad_momentum=c.rms_sq_grad_momentum, min_sq_grad=c.rms_min_sq_grad)
         self.rng = np.random.default_rng(c.seed)
         self.updates = 0
 
@@ -105,7 +163,7 @@ class ComperLearner:
         eps = self.epsilon(frames or 0) if epsilon is None else float(epsilon)
         q = self.q(self._t(obs)[None]).squeeze(0).cpu().numpy()
         if self.rng.random() < eps:
-            return int(self.rng.integers(self.config.n_actions)), q
+            return int(self.rng.integers(self.n_actions)), q
         return int(np.argmax(q)), q
 
     # ------------------------------------------------------------------ labels and targets
@@ -124,10 +182,16 @@ class ComperLearner:
     @torch.no_grad()
     def targets(self, batch: Transitions, qt_targets: np.ndarray | None = None) -> torch.Tensor:
         c = self.config
-        r = self._t(batch.rewards, torch.float32)
+        r = clip_rewards(self._t(batch.rewards, torch.float32), c.reward_clip)
         not_done = 1.0 - self._t(batch.terminated, torch.float32)
         if self.uses_target_net:
-            boot = self.q_target(self._t(batch.next_states)).max(dim=1).values
+            ns = self._t(batch.next_states)
+            q_next = self.q_target(ns)
+            if c.double_dqn:
+                a_star = self.q(ns).argmax(dim=1, keepdim=True)
+                boot = q_next.gather(1, a_star).squeeze(1)
+            else:
+                boot = q_next.max(dim=1).values
         else:
             if qt_targets is None:
                 raise ValueError(f"variant {c.variant} needs qt_targets")
@@ -138,22 +202,33 @@ class ComperLearner:
         q = self.q(self._t(batch.states))
         a = self._t(batch.actions, torch.int64).reshape(-1, 1)
         q_sa = q.gather(1, a).squeeze(1)
-        return nn.functional.huber_loss(q_sa, y, delta=self.config.huber_delta)
+        return nn.functional.huber_loss(q_sa, y, delta=self.config.huber_delta,
+                                        reduction=self.config.loss_reduction)
 
     @torch.no_grad()
     def loss(self, batch: Transitions, qt_targets: np.ndarray | None = None) -> float:
-        return float(self._loss(batch, self.targets(batch, qt_targets)))
+        """The mean Huber loss per transition (whatever ``loss_reduction`` optimises)."""
+        n = len(batch) if self.config.loss_reduction == "sum" else 1
+        return float(self._loss(batch, self.targets(batch, qt_targets))) / n
 
     # ------------------------------------------------------------------ updates
     def update(self, batch: Transitions, qt_targets: np.ndarray | None = None) -> dict:
-        """One gradient step on `batch` (qt_targets required for comper / comper_m)."""
+        """One gradient step on `batch` (qt_targets required for comper / comper_m). Returns the mean
+        Huber loss per transition (comparable across ``loss_reduction``) and the mean target."""
         y = self.targets(batch, qt_targets)
         loss = self._loss(batch, y)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if isinstance(self.optimizer, DQNRMSprop):
+            # loss_reduction mean scales the gradient by 1/B: min_sq_grad / B^2 keeps the sum's step (module
+            # text); B is this batch's size (a batch can be smaller than batch_size while RTM fills)
+            scale = float(len(batch)) ** 2 if self.config.loss_reduction == "mean" else 1.0
+            for group in self.optimizer.param_groups:
+                group["min_sq_grad"] = self.config.rms_min_sq_grad / scale
         self.optimizer.step()
         self.updates += 1
-        return {"loss": float(loss.detach()), "target_mean": float(y.mean())}
+        return {"loss": float(loss.detach()) / (len(batch) if self.config.loss_reduction == "sum" else 1),
+                "target_mean": float(y.mean())}
 
     def sync_target(self) -> None:
         if self.q_target is not None:

@@ -16,7 +16,7 @@ from comper_msgs_py.params import param
 
 __all__ = ["QTConfig", "ComcactQTConfig", "ComcactConfig", "DDPGConfig", "ComperConfig", "ALL_CONFIGS",
            "parameter_table_markdown",
-           "DQNConfig", "qt_config_for"]
+           "DQNConfig", "qt_config_for", "COMPER_PROFILES", "resolve_profile"]
 
 _NEXT_VALUE_DEVIATION = (
     "thesis text stores Q(s_t, a_t) with tau_t (q_sa), which makes r + gamma QT(tau) a target "
@@ -192,11 +192,42 @@ class ComperConfig:
                           "max_a Q(s', a) (0 when terminated); q_sa = Q(s, a) (thesis-literal)",
                           thesis="q_sa (Algorithm 7 line 4: Q_t from epsilon-greedy)",
                           choices=("next_value", "q_sa"), deviation=_NEXT_VALUE_DEVIATION)
-    n_actions: int = param(18, "outputs of the Q-network (ALE full action set)",
-                           thesis="18 (appendix A.4)", minimum=1)
-    frame_stack: int = param(1, "frames per observation (input channels)",
+    n_actions: int = param(0, "outputs of the Q-network; 0 = the environment's action count (an ALE game "
+                           "with the full action set: 18)", thesis="18 (appendix A.4, the ALE full action set)",
+                           minimum=0)
+    q_network: str = param(
+        "auto", "Q-network: nature_cnn (Table 36, uint8 frames) | mlp (vector observations, mlp_hidden) | auto = "
+        "nature_cnn for image observations ([84, 84] or [C, 84, 84]), mlp for 1-D observations",
+        thesis="nature_cnn (Table 36; the thesis runs only Atari)", choices=("auto", "nature_cnn", "mlp"))
+    mlp_hidden: list[int] = param(
+        [256, 256], "hidden layers (ReLU) of the mlp Q-network",
+        thesis="not given (no vector tasks in the thesis); 256, 256 as rl-baselines3-zoo's DQN on CartPole-v1")
+    frame_stack: int = param(1, "frames per observation (input channels; ALE only, vector tasks use 1)",
                              thesis="1 single frame, 4 stacked (Table 34)", minimum=1)
-    lr: float = param(2.5e-4, "RMSProp step size", thesis="0.00025 (Table 32)", minimum=0.0)
+    optimizer: str = param(
+        "rmsprop_dm", "rmsprop_dm = DeepMind's centred RMSProp (lr and the rms_* values below); adam = "
+        "torch.optim.Adam (lr, adam_eps)", thesis="RMSProp of Table 32", choices=("rmsprop_dm", "adam"))
+    lr: float = param(2.5e-4, "step size of the optimizer", thesis="0.00025 (Table 32)", minimum=0.0)
+    adam_eps: float = param(1.5e-4, "Adam epsilon (optimizer adam only)",
+                            thesis="not used (RMSProp); 1.5e-4 is DER's (van Hasselt et al. 2019)", minimum=0.0)
+    loss_reduction: str = param(
+        "sum", "how one batch's per-transition Huber losses make the loss: sum = the gradient is the sum of the "
+        "clipped TD errors over the batch; mean = divided by the batch's size B, and with rmsprop_dm the min "
+        "squared gradient is divided by B^2 at each update, which gives exactly the sum's step (g, n and the "
+        "gradient all scale by 1/B, so lr grad / sqrt(n - g^2 + c) is unchanged when c scales by 1/B^2)",
+        thesis="sum (Algorithm 7 lines 14-21 accumulate the gradient over the k transitions before one step, "
+        "as DeepMind's DQN, for which Table 32's 0.01 is sized)", choices=("sum", "mean"))
+    reward_clip: str = param(
+        "clip", "reward in the learning signal (TD targets, so also the value labels and QT, which learn "
+        "them): clip = clamped to [-1, 1] (for integer game scores this is the sign), sign = the sign of the "
+        "reward, none = raw. Episode scores in logs, summaries, topics and bags, and the rewards stored in "
+        "the memory (part of the similarity key), are always the raw game score",
+        thesis="clipped to [-1, 1] (chapter 5 follows Machado et al. 2018, whose DQN clips rewards as Mnih "
+        "et al. 2015)", choices=("clip", "sign", "none"))
+    double_dqn: bool = param(
+        False, "variants with a target network (comper_f, dqn): bootstrap from Q_target(s', argmax_a Q(s', a)) "
+        "(double DQN, van Hasselt et al. 2016) instead of max_a Q_target(s', a)",
+        thesis="false (the DQN of Mnih et al. 2015 and Machado et al. 2018)")
     rms_grad_momentum: float = param(0.95, "RMSProp gradient (mean) momentum",
                                      thesis="0.95 (Table 32)", minimum=0.0, maximum=1.0)
     rms_sq_grad_momentum: float = param(0.95, "RMSProp squared-gradient momentum",
@@ -209,16 +240,23 @@ class ComperConfig:
                                thesis="Huber loss (method.md 4)", minimum=0.0)
     batch_size: int = param(32, "transitions per update", thesis="32 (Table 34)", minimum=1)
     train_frequency: int = param(4, "agent steps between updates", thesis="4 (Table 34)", minimum=1)
-    learning_starts: int = param(100, "steps of random play before the first update",
-                                 thesis="100 (Table 34, replay start size)", minimum=0)
+    learning_starts: int = param(
+        100, "agent steps (not frames) before the first update; epsilon follows its own schedule from step 0",
+        thesis="100 (Table 34, 'replay start size', given in frames; counted here in agent steps as the "
+        "DQN code of Mnih et al. 2015 does)", minimum=0)
     epsilon_start: float = param(1.0, "initial epsilon", thesis="1.0 (method.md 4)", minimum=0.0,
                                  maximum=1.0)
     epsilon_end: float = param(0.01, "final epsilon", thesis="0.01 (method.md 4)", minimum=0.0,
                                maximum=1.0)
-    epsilon_decay_frames: int = param(90_000, "frames (counting skipped ones) over which epsilon "
-                                      "decays linearly", thesis="90,000 (method.md 4)", minimum=1)
+    epsilon_decay_frames: int = param(90_000, "emulator frames (counting skipped ones; a vector task has "
+                                      "one frame per agent step) over which epsilon decays linearly",
+                                      thesis="90,000 (method.md 4)", minimum=1)
     target_update_every: int = param(1_000, "agent steps between target-network copies "
                                      "(comper_f, dqn)", thesis="1,000 (Table 35)", minimum=1)
+    frame_pooling: str = param(
+        "average", "how an ALE observation combines the last two frames of a skip (given to the embedded sim "
+        "node's frame_pooling): average = colour averaging (Machado et al. 2018), max = per-pixel maximum "
+        "(Mnih et al. 2015)", thesis="colour averaging for COMPER (Table 34)", choices=("average", "max"))
     replay_size: int = param(100_000, "replay buffer capacity (dqn)", thesis="100,000 (Table 35)",
                              minimum=1)
     device: str = param("cpu", "torch device of the learner (cpu, cuda, ...)")
@@ -234,8 +272,67 @@ class DQNConfig(ComperConfig):
                          choices=("comper", "comper_m", "comper_f", "dqn"))
     frame_stack: int = param(4, "frames per observation (input channels)",
                              thesis="4 (Table 35)", minimum=1)
-    learning_starts: int = param(1_000, "steps of random play before the first update",
-                                 thesis="1,000 (Table 35)", minimum=0)
+    learning_starts: int = param(1_000, "agent steps (not frames) before the first update",
+                                 thesis="1,000 (Table 35, 'replay start size', in frames; counted in agent steps)",
+                                 minimum=0)
+    frame_pooling: str = param("max", "ALE: how the last two frames of a skip combine: average | max",
+                               thesis="max, 'frame pooling' (Table 35)", choices=("average", "max"))
+
+
+# --------------------------------------------------------------------------------------------
+# comper_node profiles: named sets of learner defaults, each value with its source
+# --------------------------------------------------------------------------------------------
+#: profile -> {field: (value, source)}. A profile only changes defaults: `-p name:=value` still wins.
+#: thesis = the dataclass defaults above (Algorithm 7, Tables 32-35).
+COMPER_PROFILES: dict[str, dict[str, tuple]] = {
+    "thesis": {},
+    # Short Atari budgets: the settings of Data-Efficient Rainbow (van Hasselt et al. 2019) as Dopamine's
+    # atari_100k DER.gin gives them, minus what is not DQN (n-step returns, distributional, dueling, noisy
+    # nets, prioritised replay are not implemented)
+    "data_efficient": {
+        "optimizer": ("adam", "DER.gin: JaxDQNAgent.optimizer adam"),
+        "lr": (1e-4, "DER.gin: create_optimizer.learning_rate 0.0001 (van Hasselt et al. 2019)"),
+        "adam_eps": (1.5e-4, "DER.gin: create_optimizer.eps 0.00015"),
+        "loss_reduction": ("mean", "Dopamine's DQN loss is the batch mean (Adam's step barely depends on scale)"),
+        "train_frequency": (1, "DER.gin: update_period 1 (one update per agent step)"),
+        "frame_stack": (4, "Dopamine's Atari preprocessing stacks 4 frames"),
+        "double_dqn": (True, "DER.gin: double_dqn True"),
+        "target_update_every": (2_000, "DER.gin: target_update_period 2000 (= agent steps at update_period 1)"),
+        "learning_starts": (1_600, "DER.gin: min_replay_history 1600 agent steps"),
+        "epsilon_decay_frames": (10_000, "DER.gin: epsilon_decay_period 2000 agent steps, x frame skip 5"),
+        "epsilon_end": (0.01, "DER.gin: epsilon_train 0.01"),
+    },
+    # Vector observations (CartPole-v1, Acrobot-v1, MountainCar-v0), which the thesis does not run:
+    # rl-baselines3-zoo's DQN settings for CartPole-v1 (hyperparams/dqn.yml), mapped onto one update every
+    # train_frequency steps. Checked with the learner alone on CartPole-v1: 3 of 3 seeds at 500 by 35,000 steps
+    "classic_control": {
+        "optimizer": ("adam", "rl-baselines3-zoo dqn.yml (SB3 DQN uses Adam)"),
+        "lr": (2.3e-3, "rl-baselines3-zoo CartPole-v1: learning_rate 2.3e-3"),
+        "adam_eps": (1e-8, "torch / SB3 Adam default"),
+        "loss_reduction": ("mean", "SB3 DQN: smooth L1 (Huber) loss, batch mean"),
+        "batch_size": (64, "rl-baselines3-zoo CartPole-v1: batch_size 64"),
+        "train_frequency": (2, "rl-baselines3-zoo CartPole-v1: 128 gradient steps per 256 env steps"),
+        "learning_starts": (1_000, "rl-baselines3-zoo CartPole-v1: learning_starts 1000"),
+        "target_update_every": (256, "rl-baselines3-zoo CartPole-v1: the target is refreshed once per 256-step "
+                                     "collection (target_update_interval 10 env steps, train_freq 256)"),
+        "epsilon_decay_frames": (8_000, "rl-baselines3-zoo CartPole-v1: exploration_fraction 0.16 of 50,000 steps "
+                                        "(one frame per step on vector tasks)"),
+        "epsilon_end": (0.04, "rl-baselines3-zoo CartPole-v1: exploration_final_eps 0.04"),
+        "double_dqn": (False, "SB3 DQN, whose settings these are, is not double DQN"),
+        "replay_size": (100_000, "rl-baselines3-zoo CartPole-v1: buffer_size 100000"),
+        "reward_clip": ("none", "classic control rewards are already -1 / +1 per step"),
+        "frame_stack": (1, "a vector observation is the whole state (the DQN baseline's 4 applies to frames)"),
+    },
+}
+
+
+def resolve_profile(name: str, env_id: str) -> str:
+    """``profile`` auto -> thesis for ALE games (ALE/...), classic_control for other tasks."""
+    if name == "auto":
+        return "thesis" if env_id.startswith("ALE/") else "classic_control"
+    if name not in COMPER_PROFILES:
+        raise ValueError(f"unknown profile {name!r}; one of auto, {', '.join(COMPER_PROFILES)}")
+    return name
 
 
 def parameter_table_markdown(cls) -> str:

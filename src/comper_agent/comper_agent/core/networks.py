@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["Actor", "Critic", "NatureCNN", "configure_torch", "soft_update", "hard_update",
+__all__ = ["Actor", "Critic", "NatureCNN", "QMLP", "configure_torch", "soft_update", "hard_update",
            "frames_to_nchw"]
 
 
@@ -122,6 +122,24 @@ class NatureCNN(nn.Module):
         x = frames_to_nchw(frames, self.in_channels)
         x = x.float() / 255.0 if x.dtype == torch.uint8 else x.float()
         return self.head(self.features(x))
+
+
+class QMLP(nn.Module):
+    """Q-network for vector observations: [Linear -> ReLU] per hidden layer -> Linear n_actions
+    (torch default initialisation). Input float32 [N, obs_dim] (any trailing shape is flattened)."""
+
+    def __init__(self, obs_dim: int, n_actions: int, hidden=(256, 256)):
+        super().__init__()
+        layers: list[nn.Module] = [nn.Flatten()]
+        d = int(obs_dim)
+        for h in hidden:
+            layers += [nn.Linear(d, int(h)), nn.ReLU()]
+            d = int(h)
+        layers.append(nn.Linear(d, int(n_actions)))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.net(obs.float())
 
 
 @torch.no_grad()

@@ -31,6 +31,11 @@ class ReplayBuffer:
     def __len__(self) -> int:
         return self.size
 
+    @property
+    def nbytes(self) -> int:
+        return int(sum(a.nbytes for a in (self.states, self.next_states, self.actions, self.rewards,
+                                          self.terminated, self.truncated)))
+
     def add(self, batch: Transitions) -> None:
         """Append a batch (oldest entries are overwritten when full)."""
         n = len(batch)

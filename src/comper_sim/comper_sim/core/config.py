@@ -49,6 +49,12 @@ class SimConfig:
         "Vector tasks always give the raw observation as float32",
         thesis="colour averaging, luminance, 84x84 (section 5.1; Machado et al. 2018)",
         choices=("standard", "none"))
+    frame_pooling: str = param(
+        "average", "ALE, preprocessing standard: how the last two frames of the skip combine before the resize: "
+        "average (colour averaging; luminance is linear in RGB) or max (per-pixel maximum of the two luminance "
+        "frames, the 'frame pooling' of Mnih et al. 2015)",
+        thesis="colour averaging for COMPER (Table 34), frame pooling (max) for DQN (Table 35)",
+        choices=("average", "max"))
     frame_stack: int = param(
         1, "ALE: frames per observation; 1 gives [84, 84], 4 gives [4, 84, 84] (oldest first)",
         thesis="a single frame by default; a stack of 4 for the DQN-style agents", minimum=1, maximum=16)

@@ -12,7 +12,9 @@
   grayscale screen is the luminance of the NTSC palette; luminance is linear in RGB, so the
   average of two luminance frames is the luminance of the averaged colours. The average is resized
   to ``obs_size`` x ``obs_size`` by exact area averaging (two small matrix products, the same
-  weights as an INTER_AREA/box downscale) and rounded to uint8.
+  weights as an INTER_AREA/box downscale) and rounded to uint8. ``frame_pooling: max`` takes the
+  per-pixel maximum of the two luminance frames instead (the DQN baseline's Table 35 setting, done on
+  grayscale frames as Dopamine's Atari preprocessing does).
 
 ``SimEnv.step`` takes an action that the bridge has already validated.
 """
@@ -216,6 +218,7 @@ class AtariEnv(SimEnv):
         self.max_episode_steps = int(config.max_episode_steps) if config.max_episode_steps > 0 else -1
         self.frame_stack = int(config.frame_stack)
         self.preprocessing = config.preprocessing
+        self.frame_pooling = config.frame_pooling
         self.repeat_action_probability = float(config.repeat_action_probability)
         self.max_episode_frames = int(config.max_episode_frames)
         h, w = self.ale.getScreenDims()
@@ -240,8 +243,12 @@ class AtariEnv(SimEnv):
         if self.preprocessing != "standard":
             return last.copy()
         prev = self._screens[1 - newest] if count >= 2 else last
-        total = last.astype(np.float32)
-        total += prev
+        if self.frame_pooling == "max":
+            total = np.maximum(last, prev).astype(np.float32)
+            total *= 2.0                     # the resize's gain 0.5 expects the sum of two frames
+        else:
+            total = last.astype(np.float32)
+            total += prev
         out = self._resize(total)
         np.rint(out, out=out)
         return out.astype(np.uint8)
@@ -292,7 +299,8 @@ class AtariEnv(SimEnv):
                 "full_action_space": self.num_actions == 18 and len(self.ale.getLegalActionSet()) == 18,
                 "num_actions": self.num_actions,
                 "preprocessing": self.preprocessing,
-                "colour_averaging": self.preprocessing == "standard",
+                "colour_averaging": self.preprocessing == "standard" and self.frame_pooling == "average",
+                "frame_pooling": self.frame_pooling if self.preprocessing == "standard" else "none",
                 "luminance": True, "frame_shape": list(self._frame_shape),
                 "frame_stack": self.frame_stack,
                 "max_episode_frames": self.max_episode_frames,
