@@ -5,10 +5,16 @@ Each run is one ``ros2 run comper_agent comper_node`` subprocess (embedded bring
 ROS_DOMAIN_ID so parallel runs never answer each other's services), at most ``--parallel`` (2) at a
 time. When all runs are done (or with ``--report-only`` on an existing --out folder) it writes:
 
-* ``<out>/table.md`` + ``<out>/table.json``: per game and variant, mean +- std across seeds of the
-  run's mean of the last 10 training episodes (3 for runs with fewer than 25 episodes) and of the
-  three terciles (mean of the last 5 (or 3) episodes at the end of each third of the episodes), the
-  thesis's Tables 23/25/30 layout, plus frames, episodes, wall time and steps/s;
+* ``<out>/table.md`` + ``<out>/table.json``: per game and variant, the mean across seeds (with a
+  bootstrap 95% confidence interval of that mean) of the run's mean of the last 10 training episodes
+  (3 for runs with fewer than 25 episodes) and of the three terciles (mean of the last 5 (or 3)
+  episodes at the end of each third of the episodes), the thesis's Tables 23/25/30 layout, plus
+  frames, episodes, wall time and steps/s; with ``--reference`` (atari_constant_actions.py's JSON)
+  the random-play and best-constant-action rows of each game; with ``--policy``
+  (atari_policy_check.py's JSON) how many runs' final greedy action is the initial network's in
+  every state, and the distinct greedy actions per run;
+* ``<out>/runs.json``: the per-run figures (small; keep it in git and pass it to ``--include`` to
+  merge a sweep split over several sessions or machines: runs of this --out win on the same id);
 * ``<out>/curve_<game>.png``: training episode returns against frames, one line per variant
   (mean over seeds on a common frame grid, band = min..max);
 * ``<out>/memory_<game>.png`` + ``memory.json``: identities, TM sets, RTM size and the mean size of
@@ -16,7 +22,8 @@ time. When all runs are done (or with ``--report-only`` on an existing --out fol
 
     python benchmarks/atari_bench.py --games Freeway --variants comper --seeds 0 --out benchmarks/out/atari
     python benchmarks/atari_bench.py                       # 5 games x 4 variants x 3 seeds (long)
-    python benchmarks/atari_bench.py --out benchmarks/out/atari --report-only
+    python benchmarks/atari_bench.py --out benchmarks/out/atari --report-only \
+        --reference docs/results/atari/constant-actions.json --policy policy.json --include docs/results/atari/*-runs.json
 """
 from __future__ import annotations
 
@@ -112,26 +119,81 @@ def _ms(values: list[float]) -> str:
     return f"{np.mean(v):.1f} ({np.std(v):.1f})" if len(v) > 1 else f"{v[0]:.1f}"
 
 
+def _ci(values: list[float]) -> str:
+    """Mean [bootstrap 95% CI of the mean over runs]."""
+    from learning_bench import bootstrap_ci
+    v = [x for x in values if x is not None and np.isfinite(x)]
+    if not v:
+        return "-"
+    lo, hi = bootstrap_ci(v)
+    return f"{np.mean(v):.1f} [{lo:.1f}, {hi:.1f}]" if len(v) > 1 else f"{v[0]:.1f}"
+
+
+def run_record(sd: Path) -> dict:
+    """The per-run figures the report needs (what runs.json keeps)."""
+    s = json.loads(sd.read_text())
+    eps = MetricsLog.read(sd.parent / "metrics.jsonl", "episode", missing_ok=True)
+    return {"run_id": sd.parent.name, "game": s["env_id"].split("/")[-1].replace("-v5", ""),
+            "variant": s["algorithm"], "seed": s["seed"], "protocol": s["protocol"], "frames": s["frames"],
+            "steps": s["steps"], "wall_time_s": s["wall_time_s"], "complete": s["complete"],
+            "episode_frames": [e["frames"] for e in eps], "episode_returns": [e["ret"] for e in eps],
+            "profile": s.get("profile")}
+
+
+def reference_lines(path: Path | None, games: list[str]) -> list[str]:
+    """Random play and the best constant action per game (atari_constant_actions.py's JSON)."""
+    if path is None:
+        return []
+    ref = json.loads(Path(path).read_text())
+    out = []
+    for g in games:
+        if g not in ref:
+            continue
+        rows = {a: float(np.mean(v)) for a, v in ref[g].items()}
+        rnd = rows.pop("random", None)
+        best = max(rows, key=rows.get) if rows else None
+        if rnd is not None:
+            out.append(f"| {g} | random play (reference) | {len(ref[g]['random'])} episodes | {rnd:.1f} | | | | | | | | |")
+        if best is not None:
+            out.append(f"| {g} | best constant action: {best} (reference) | {len(ref[g][best])} episodes | "
+                       f"{rows[best]:.1f} | | | | | | | | |")
+    return out
+
+
 def report(args) -> None:
     out = Path(args.out)
-    rows = {}
+    records = {}
+    for inc in args.include:
+        for r in json.loads(Path(inc).read_text()):
+            records[r["run_id"]] = r
+    for sd in sorted((out / "runs").glob("*/summary.json")):
+        records[sd.parent.name] = run_record(sd)
+    (out / "runs.json").write_text(json.dumps(sorted(records.values(), key=lambda r: r["run_id"]), indent=0))
+    policy = {}
+    for pf in args.policy:
+        policy.update({r["run"]: r for r in json.loads(Path(pf).read_text())})
+    rows: dict = {}
     curves: dict = {}
     memory: dict = {}
-    for sd in sorted((out / "runs").glob("*/summary.json")):
-        s = json.loads(sd.read_text())
-        game = s["env_id"].split("/")[-1].replace("-v5", "")
-        key = (game, s["algorithm"])
+    for rid, s in sorted(records.items()):
+        key = (s["game"], s["variant"])
         rows.setdefault(key, []).append(s)
-        eps = MetricsLog.read(sd.parent / "metrics.jsonl", "episode", missing_ok=True)
-        curves.setdefault(game, {}).setdefault(s["algorithm"], []).append(
-            ([e["frames"] for e in eps], [e["ret"] for e in eps]))
-        mem = MetricsLog.read(sd.parent / "metrics.jsonl", "memory", missing_ok=True)
-        memory.setdefault(game, {}).setdefault(s["algorithm"], []).append(mem)
+        curves.setdefault(s["game"], {}).setdefault(s["variant"], []).append((s["episode_frames"], s["episode_returns"]))
+        mdir = out / "runs" / rid / "metrics.jsonl"
+        if mdir.exists():
+            memory.setdefault(s["game"], {}).setdefault(s["variant"], []).append(
+                MetricsLog.read(mdir, "memory", missing_ok=True))
     table = []
-    lines = ["| game | variant | seeds | last 10 (3*) | tercile 1 | tercile 2 | tercile 3 | episodes | frames | "
-             "wall (min) | steps/s | complete |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| game | variant | seeds | last 10 (3*) [95% CI] | tercile 1 | tercile 2 | tercile 3 | episodes | frames | "
+             "wall (min) | steps/s | policy: on the initial greedy action everywhere; distinct greedy actions |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    games = []
     for (game, alg), ss in sorted(rows.items(), key=lambda kv: (kv[0][0], VARIANTS.index(kv[0][1])
                                                                   if kv[0][1] in VARIANTS else 9)):
+        if game not in games:
+            if games:
+                lines += reference_lines(args.reference, [games[-1]])
+            games.append(game)
         pr = [s["protocol"] for s in ss]
         star = "*" if any(p["last_k"] == 3 for p in pr) else ""
         entry = {"game": game, "variant": alg, "seeds": [s["seed"] for s in ss],
@@ -141,15 +203,25 @@ def report(args) -> None:
                  "wall_s": [s["wall_time_s"] for s in ss],
                  "steps_per_s": [s["steps"] / s["wall_time_s"] if s["wall_time_s"] else None for s in ss],
                  "complete": [s["complete"] for s in ss]}
+        pol = [policy[s["run_id"]] for s in ss if s["run_id"] in policy]
+        if pol:
+            entry["policy"] = pol
+            pcell = (f"{sum(r['same_as_initial'] == 1.0 for r in pol)}/{len(pol)}; "
+                     + ", ".join(str(r["distinct"]) for r in pol))
+        else:
+            pcell = "-"
         table.append(entry)
         terc = list(zip(*entry["terciles"])) if entry["terciles"] else [[], [], []]
-        lines.append(f"| {game} | {alg} | {len(ss)} | {_ms(entry['last'])}{star} | {_ms(list(terc[0]))} | "
+        lines.append(f"| {game} | {alg} | {len(ss)} | {_ci(entry['last'])}{star} | {_ms(list(terc[0]))} | "
                      f"{_ms(list(terc[1]))} | {_ms(list(terc[2]))} | {_ms(entry['episodes'])} | "
                      f"{_ms(entry['frames'])} | {_ms([w / 60 for w in entry['wall_s']])} | "
-                     f"{_ms(entry['steps_per_s'])} | {sum(entry['complete'])}/{len(ss)} |")
+                     f"{_ms(entry['steps_per_s'])} | {pcell} |")
+    if games:
+        lines += reference_lines(args.reference, [games[-1]])
     lines.append("")
-    lines.append("mean (std across seeds); * = a run with fewer than 25 episodes reports its last 3 episodes "
-                 "(terciles: last 3 instead of 5).")
+    lines.append("last 10: mean over seeds [bootstrap 95% CI of that mean]; terciles and the rest: mean (std across "
+                 "seeds); * = a run with fewer than 25 episodes reports its last 3 episodes (terciles: last 3 instead "
+                 "of 5).")
     (out / "table.md").write_text("\n".join(lines) + "\n")
     (out / "table.json").write_text(json.dumps(table, indent=1))
     (out / "memory.json").write_text(json.dumps(memory, indent=1))
@@ -236,6 +308,12 @@ def main(argv=None) -> int:
                     help="extra -p parameter for every run (repeatable)")
     ap.add_argument("--force", action="store_true", help="re-run runs whose summary.json exists")
     ap.add_argument("--report-only", action="store_true", help="only build the tables and figures")
+    ap.add_argument("--include", nargs="+", default=[], metavar="RUNS_JSON",
+                    help="runs.json files of earlier sweeps (kept in git): their runs join the table and curves")
+    ap.add_argument("--reference", type=Path, default=None,
+                    help="atari_constant_actions.py's JSON: random-play and best-constant rows per game")
+    ap.add_argument("--policy", nargs="+", default=[], metavar="POLICY_JSON",
+                    help="atari_policy_check.py --json output(s): the policy column")
     args = ap.parse_args(argv)
     Path(args.out).mkdir(parents=True, exist_ok=True)
     if not args.report_only:

@@ -46,7 +46,8 @@ def check(run: Path, states: int, explore: float, seed: int) -> dict:
         raise ValueError(f"{run}: not a COMPER / DQN checkpoint")
     q, q0 = policy.q, initial_network(config)
     n = int(q.head[-1].out_features)
-    env = make_env(SimConfig(env_id=env_id, frame_stack=q.in_channels))
+    pooling = config["learner"].get("frame_pooling", "average")      # runs before frame_pooling: average
+    env = make_env(SimConfig(env_id=env_id, frame_stack=q.in_channels, frame_pooling=pooling))
     names = env.env.unwrapped.get_action_meanings()     # ALE's own action names, in action order
     rng = np.random.default_rng(seed)
     obs, greedy, gaps, greedy0 = env.reset(seed), [], [], []

@@ -46,3 +46,9 @@ def test_doc_lists_every_parameter():
     text = DOC.read_text()
     for cls in ALL_CONFIGS:
         assert parameter_table_markdown(cls) in text, f"docs/agent-core.md is stale for {cls.__name__}"
+
+
+def test_comper_doc_lists_every_profile_value():
+    from comper_agent.core.config import profile_table_markdown
+    text = (DOC.parent / "comper.md").read_text()
+    assert profile_table_markdown() in text, "docs/comper.md's profile table is stale (paste profile_table_markdown())"

@@ -684,7 +684,7 @@ class ComperNode(AgentNode):
 
     def _write_summary(self, elapsed: float, steps: int, frames: int, timers: dict) -> None:
         s = protocol_summary(self.returns)
-        summary = {"run_id": self.run_id, "algorithm": self.p.algorithm, "env_id": self.p.env_id,
+        summary = {"run_id": self.run_id, "algorithm": self.p.algorithm, "env_id": self.p.env_id, "profile": self.profile,
                    "seed": int(self.cfg.seed), "frame_stack": int(self.cfg.frame_stack),
                    "total_frames_budget": int(self.p.total_frames), "frames": int(self.frames), "steps": int(self.step),
                    "updates": int(self.updates), "reductions": int(self.reductions),

@@ -16,7 +16,7 @@ from comper_msgs_py.params import param
 
 __all__ = ["QTConfig", "ComcactQTConfig", "ComcactConfig", "DDPGConfig", "ComperConfig", "ALL_CONFIGS",
            "parameter_table_markdown",
-           "DQNConfig", "qt_config_for", "COMPER_PROFILES", "resolve_profile"]
+           "DQNConfig", "qt_config_for", "COMPER_PROFILES", "resolve_profile", "profile_table_markdown"]
 
 _NEXT_VALUE_DEVIATION = (
     "thesis text stores Q(s_t, a_t) with tau_t (q_sa), which makes r + gamma QT(tau) a target "
@@ -333,6 +333,19 @@ def resolve_profile(name: str, env_id: str) -> str:
     if name not in COMPER_PROFILES:
         raise ValueError(f"unknown profile {name!r}; one of auto, {', '.join(COMPER_PROFILES)}")
     return name
+
+
+def profile_table_markdown() -> str:
+    """A markdown table of comper_node's profiles: each value that differs from the thesis defaults and its source."""
+    from comper_msgs_py.params import spec_of
+    defaults = {f.name: d for f, d, _ in spec_of(ComperConfig)}
+    rows = ["| profile | parameter | value | ComperConfig default | source |", "|---|---|---|---|---|"]
+    for name, values in COMPER_PROFILES.items():
+        if not values:
+            rows.append(f"| `{name}` | (all) | the defaults | | Algorithm 7, Tables 32-35 |")
+        for k, (v, src) in values.items():
+            rows.append(f"| `{name}` | `{k}` | `{v}` | `{defaults[k]}` | {src} |")
+    return "\n".join(rows) + "\n"
 
 
 def parameter_table_markdown(cls) -> str:
