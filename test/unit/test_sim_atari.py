@@ -91,6 +91,30 @@ def test_observation_is_the_resized_average_of_the_last_two_frames():
         assert np.mean(got != expected) < 0.01
 
 
+def test_frame_pooling_max_is_the_resized_maximum_of_the_last_two_frames():
+    """The DQN baseline's Table 35 setting, replayed by hand like the average above."""
+    a, b = bridge(frame_pooling="max"), bridge()
+    assert a.info().spec["frame_pooling"] == "max" and a.info().spec["colour_averaging"] is False
+    assert b.info().spec["frame_pooling"] == "average"
+    a.reset(seed=7), b.reset(seed=7)
+    differs = 0
+    for action in (3, 3, 4, 1, 1):
+        ale = b.env.ale
+        act = b.env._action_set[action]
+        frames = []
+        for _ in range(5):
+            ale.act(act)
+            frames.append(ale.getScreenGrayscale().astype(np.float64))
+        pooled = np.maximum(frames[-1], frames[-2])
+        expected = np.rint(area_resize_matrix(210, 84) @ pooled @ area_resize_matrix(160, 84).T)
+        avg = np.rint(area_resize_matrix(210, 84) @ ((frames[-1] + frames[-2]) / 2) @ area_resize_matrix(160, 84).T)
+        got = a.step(action).observation.astype(np.float64)
+        assert np.abs(got - expected).max() <= 1 and np.mean(got != expected) < 0.01
+        differs += int(np.any(expected != avg))
+    assert differs >= 1                                # the two poolings are not the same observation
+    a.close(), b.close()
+
+
 def test_area_resize_weights():
     w = area_resize_matrix(210, 84)
     np.testing.assert_allclose(w.sum(axis=1), 1.0)
