@@ -147,13 +147,13 @@ class MemoryNode(Node):
             self.snapshot_service = str(self.declare_parameter(
                 "snapshot_service", "save_restore", ParameterDescriptor(
                     description="what ~/snapshot lets peers do: save_restore (default), save (OP_RESTORE, "
-                                "which replaces the whole state, is refused) or off (both refused). "
+                                "which replaces the whole state, is refused) or disabled (both refused). "
                                 "ROS 2 services carry no caller identity: use SROS2 security enclaves "
                                 "where only some peers may call (docs/memory-service.md)",
-                    read_only=True, additional_constraints="one of: save_restore, save, off")).value)
-            if self.snapshot_service not in ("save_restore", "save", "off"):
+                    read_only=True, additional_constraints="one of: save_restore, save, disabled")).value)
+            if self.snapshot_service not in ("save_restore", "save", "disabled"):
                 raise ConfigError(f"snapshot_service {self.snapshot_service!r} is not one of "
-                                  "save_restore, save, off")
+                                  "save_restore, save, disabled")
             self.snapshot_root = str(self.declare_parameter(
                 "snapshot_root", "", ParameterDescriptor(
                     description="the only directory ~/snapshot may write or read named snapshots in "
@@ -385,8 +385,8 @@ class MemoryNode(Node):
         return full
 
     def _snapshot(self, request: Snapshot.Request) -> tuple[str, str]:
-        if self.snapshot_service == "off":
-            raise _Refused("snapshot: this node's snapshot service is off (snapshot_service off)")
+        if self.snapshot_service == "disabled":
+            raise _Refused("snapshot: this node's snapshot service is off (snapshot_service disabled)")
         if request.op == Snapshot.Request.OP_SAVE:
             if request.path:
                 path = self._named_snapshot_path(request.path)
