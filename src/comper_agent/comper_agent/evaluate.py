@@ -11,6 +11,12 @@ episodes (last 3 for runs with under 25 episodes), mean of the last 5 (3) episod
 each tercile of the budget, and the evaluation points; mean +- std (population) across runs
 grouped by algorithm and task. Returns are the EpisodeSummary messages' float64 values (what the
 agent printed), cross-checked against the returns summed from the recorded transitions.
+
+A bag that cannot be read (truncated by a killed recorder, no metadata.yaml, a damaged file) or
+that holds no episodes is reported in one line naming the bag and what to run; ``--repair``
+first rebuilds each bag's metadata.yaml from its complete storage files
+(``comper_agent.recording.repair_bag``: a partial file is moved to ``<bag>/.open/``, untouched),
+then evaluates. ``--repair`` with ``--out -`` only repairs.
 """
 from __future__ import annotations
 
@@ -199,13 +205,80 @@ def _report(out: Path, args, summaries: list, groups: list, q_results: dict, plo
     return text
 
 
+class BagError(ValueError):
+    """A bag that cannot be evaluated; the message names it and what to run."""
+
+
+_STORAGE_SUFFIXES = (".mcap", ".db3")
+
+
+def _storage_dirs(paths) -> list[Path]:
+    """Directories holding rosbag2 storage files (bags, with or without metadata.yaml)."""
+    out, seen = [], set()
+    for p in map(Path, paths):
+        if not p.exists():
+            raise FileNotFoundError(f"{p} does not exist")
+        files = [p] if p.is_file() else [f for f in sorted(p.rglob("*")) if f.suffix in _STORAGE_SUFFIXES]
+        for f in files:
+            d = f.parent
+            if ".open" in d.parts or d.resolve() in seen:
+                continue
+            seen.add(d.resolve())
+            out.append(d)
+    return out
+
+
+def _repair_hint(bag) -> str:
+    return (f"run `ros2 run comper_agent evaluate --repair {bag} --out -` (rebuilds metadata.yaml from the "
+            f"complete storage files; a partial file is moved to {Path(bag) / '.open'}/, untouched), then "
+            "evaluate again")
+
+
+def repair(paths) -> list[dict]:
+    """repair_bag on every bag directory under paths; one result dict per bag (with 'bag')."""
+    from .recording import repair_bag
+    dirs = _storage_dirs(paths)
+    if not dirs:
+        raise BagError(f"no rosbag2 storage files (.mcap, .db3) under {', '.join(map(str, paths))}")
+    return [{"bag": str(d), **repair_bag(d)} for d in dirs]
+
+
+def _check_readable(paths) -> None:
+    """Name the first bag that does not open or read to the end, or a bag without metadata."""
+    from rosbags.rosbag2 import Reader
+    try:
+        bags = offline.find_bags(paths)
+    except FileNotFoundError as exc:
+        loose = [d for d in _storage_dirs(paths) if not (d / "metadata.yaml").is_file()]
+        if loose:
+            raise BagError(f"{loose[0]} holds bag files but no metadata.yaml (the recorder did not close "
+                           f"the bag); {_repair_hint(loose[0])}") from None
+        raise BagError(str(exc)) from None
+    for bag in bags:
+        try:
+            with Reader(bag) as r:
+                for _ in r.messages():
+                    pass
+        except Exception as exc:  # noqa: BLE001 - any reader failure: name the bag
+            raise BagError(f"cannot read bag {bag}: {type(exc).__name__}: {str(exc).rstrip('.')}. The bag is truncated or "
+                           f"damaged (e.g. the recorder was killed while writing); {_repair_hint(bag)}") from None
+
+
 def evaluate(paths, out, *, checkpoint=None, gamma: float = 0.99, fqe_updates: int = 2000,
              budget: float | None = None, plots: bool = True, algorithm: str | None = None, threads: int = 1,
              args=None) -> dict:
     t0 = time.perf_counter()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    runs = offline.read_runs(paths)
+    try:
+        runs = offline.read_runs(paths)
+    except Exception:  # noqa: BLE001 - find which bag and say what to run, else the original error
+        _check_readable(paths)
+        raise
+    if not any(r.episodes for r in runs.values()):
+        raise BagError(f"the bags under {', '.join(map(str, paths))} hold no EpisodeSummary messages "
+                       f"({len(runs)} runs with other messages): nothing to evaluate. Was the recorder "
+                       "subscribed to the agent's ~/episodes topic (docs/recording.md)?")
     if algorithm:
         for r in runs.values():
             r.algorithm = algorithm
@@ -258,7 +331,24 @@ def main(argv=None) -> int:
     p.add_argument("--algorithm", help="override the algorithm label of every run")
     p.add_argument("--threads", type=int, default=1, help="torch threads for --checkpoint (default 1)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--repair", action="store_true",
+                   help="first rebuild each bag's metadata.yaml from its complete storage files (a bag whose "
+                        "recorder was killed); the partial file is moved to <bag>/.open/. With --out -: "
+                        "repair only")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    if args.repair:
+        try:
+            results = repair(args.paths)
+        except (FileNotFoundError, ValueError, OSError) as exc:
+            print(f"evaluate --repair: {exc}", file=sys.stderr)
+            return 1
+        for r in results:
+            print(f"repaired {r['bag']}: {len(r['files'])} files, {r['messages']} messages"
+                  + (f"; set aside in .open/: {', '.join(r['skipped'])}" if r["skipped"] else ""))
+        if args.out == "-":
+            return 0
+    elif args.out == "-":
+        p.error("--out - (no report) is only meaningful with --repair")
     try:
         s = evaluate(args.paths, args.out, checkpoint=args.checkpoint, gamma=args.gamma,
                      fqe_updates=args.fqe_updates, budget=args.budget, plots=not args.no_plots,
