@@ -274,14 +274,17 @@ class MemoryClient:
         return {name: getattr(s, name) for name in _STATS_FIELDS}
 
     def snapshot(self, path: str = "", *, timeout: float | None = None) -> tuple[str, int]:
-        """Save a verified snapshot at `path` ('' = the node's storage_dir; the path is on the
-        node's machine). Returns (path written, wal_sequence)."""
+        """Save a verified snapshot: '' = the node's storage_dir (checkpoint + WAL rotation), a
+        relative name = under the node's snapshot_root, an absolute path only inside it (paths are
+        on the node's machine; anything else is refused). Returns (path written, wal_sequence)."""
         r = self._call(self._snapshot, Snapshot.Request(op=Snapshot.Request.OP_SAVE, path=str(path)), timeout)
         return r.path, int(r.wal_sequence)
 
     def restore(self, path: str = "", *, timeout: float | None = None) -> tuple[str, int]:
-        """Replace the node's state by the snapshot at `path` ('' = storage_dir); a corrupted or
-        incompatible snapshot raises MemoryServiceError and leaves the state untouched."""
+        """Replace the node's state by the snapshot at `path` ('' = storage_dir's snapshot, else
+        confined to snapshot_root like :meth:`snapshot`); a corrupted or incompatible snapshot,
+        a path outside snapshot_root or a node with snapshot_service other than save_restore
+        raises MemoryServiceError and leaves the state untouched."""
         r = self._call(self._snapshot, Snapshot.Request(op=Snapshot.Request.OP_RESTORE, path=str(path)), timeout)
         return r.path, int(r.wal_sequence)
 

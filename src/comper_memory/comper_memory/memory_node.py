@@ -19,7 +19,12 @@ Services (private, relative to the node, e.g. ``/memory_node/store``):
 Topic ``~/stats`` (comper_msgs/msg/MemoryStats), every ``stats_period_s``, best effort, keep last 1.
 Parameters: every field of :class:`comper_memory.core.MemoryConfig` (read-only, declared with
 ``declare_config``) plus the node-level ``key_size``, ``stats_period_s``, ``sample_seed``,
-``faiss_threads``, ``blas_threads`` and ``executor_threads``.
+``faiss_threads``, ``blas_threads``, ``executor_threads``, ``snapshot_root`` and ``snapshot_service``.
+
+``~/snapshot`` paths are confined to ``snapshot_root`` (default ``<storage_dir>/snapshots``): a
+relative path is taken under it, an absolute one must resolve inside it, links and ``..`` cannot
+leave it, and the live storage can never be a target. ROS 2 services carry no caller identity;
+deployments where only some peers may call use SROS2 enclaves (docs/memory-service.md).
 
 A refused request answers ``success=false`` with the reason in ``message`` and changes nothing
 (the core validates a whole request before it touches any state); the node keeps serving.
