@@ -3,9 +3,10 @@
     . ./env.sh && python benchmarks/memory_hardening_bench.py                 # in-process + ROS
     python benchmarks/memory_hardening_bench.py --no-ros --identities 20000   # in-process only
 
-Keys are 26-d (Hopper-like: obs 11, action 3, reward): the memory is filled to ``--identities``
-identities with batches of 1024, then ``--calls`` store calls of 64 transitions (48 new, 16
-re-stores of earlier ones) are timed one by one. Scenarios:
+Keys are 26-d (Hopper-like: obs 11, action 3, reward): ``--calls`` store calls of 64 transitions
+(``--new`` new ones, the rest re-stores of earlier ones) are timed one by one while the memory
+grows through ``--identities`` (filled with batches of 1024 to ``identities - calls * new / 2``
+first, so the timed calls are centred on it). Scenarios:
 
 * stationary: every value N(0, 1);
 * drifting: the first observation value is a step counter (it grows by one per transition, so
@@ -50,7 +51,7 @@ def make(rng, n, scenario, start):
                        value_labels=rng.standard_normal(n).astype(np.float32))
 
 
-def workload(scenario, identities, calls, bound, seed=0):
+def workload(scenario, identities, calls, bound, new_per_call=16, seed=0):
     """(fill batches, timed batches of 64, big batch of 16384)."""
     rng = np.random.default_rng(seed)
     step = 0
@@ -59,15 +60,15 @@ def workload(scenario, identities, calls, bound, seed=0):
         p = make(rng, 1, "stationary", 0)
         p.states[0, 3] = np.float32(bound)
         fill.append(p)
-    while sum(len(b) for b in fill) < identities:
+    while sum(len(b) for b in fill) < identities - calls * new_per_call // 2:
         fill.append(make(rng, 1024, scenario, step))
         step += 1024
     pool = Transitions.concatenate(fill[-4:])
     timed = []
     for _ in range(calls):
-        new = make(rng, 48, scenario, step)
-        step += 48
-        timed.append(Transitions.concatenate([new, pool.take(rng.integers(0, len(pool), 16))]))
+        new = make(rng, new_per_call, scenario, step)
+        step += new_per_call
+        timed.append(Transitions.concatenate([new, pool.take(rng.integers(0, len(pool), 64 - new_per_call))]))
     big = make(rng, 16384, scenario, step)
     return fill, timed, big
 
@@ -148,11 +149,14 @@ def run_ros(fill, timed, big, log_dir, tag):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--identities", type=int, default=20000)
-    ap.add_argument("--calls", type=int, default=300, help="timed store calls of 64 per scenario")
+    ap.add_argument("--calls", type=int, default=1000, help="timed store calls of 64 per scenario")
+    ap.add_argument("--new", type=int, default=16, help="new transitions per timed call (the rest re-stores)")
     ap.add_argument("--no-ros", action="store_true", help="in-process core only")
+    ap.add_argument("--repeat", type=int, default=3,
+                    help="rounds over all scenarios (interleaved); the table gives the median of each figure")
     args = ap.parse_args(argv)
     from comper_memory.core import MemoryConfig
-    bound = MemoryConfig().max_key_abs
+    bound = getattr(MemoryConfig(), "max_key_abs", 1e8)  # the same poison on code without the bound
     try:
         from comper_msgs_py.blas import set_numpy_blas_threads
         set_numpy_blas_threads(1)  # as the node (blas_threads 1)
@@ -161,17 +165,21 @@ def main(argv=None) -> int:
     except Exception:  # noqa: BLE001 - speed setting only
         pass
     paths = [("core", None)] + ([] if args.no_ros else [("ros", "ros")])
-    rows = {}
+    runs = {}
     log_dir = tempfile.mkdtemp(prefix="hardening_bench_")
-    for scenario in ("stationary", "drifting", "poisoned"):
-        fill, timed, big = workload(scenario, args.identities, args.calls, bound)
-        for path, _ in paths:
-            r = run_core(fill, timed, big) if path == "core" else run_ros(fill, timed, big, log_dir, scenario)
-            rows[(path, scenario)] = r
-            print(f"[{path:4s}] {scenario:10s} identities {r['ids']:6d}  store(64) p50 {r['p50']:7.2f} ms  "
-                  f"p99 {r['p99']:7.2f} ms  store(16384) {r['big_s']:6.3f} s"
-                  + (f"  other client's longest wait {r['other_max_ms']:.0f} ms" if "other_max_ms" in r else ""),
-                  flush=True)
+    loads = {s: workload(s, args.identities, args.calls, bound, args.new)
+             for s in ("stationary", "drifting", "poisoned")}
+    for rnd in range(args.repeat):
+        for scenario, (fill, timed, big) in loads.items():
+            for path, _ in paths:
+                r = run_core(fill, timed, big) if path == "core" else \
+                    run_ros(fill, timed, big, log_dir, f"{scenario}{rnd}")
+                runs.setdefault((path, scenario), []).append(r)
+                print(f"[{path:4s}] round {rnd} {scenario:10s} identities after {r['ids']:6d}  store(64) p50 "
+                      f"{r['p50']:7.2f} ms  p99 {r['p99']:7.2f} ms  store(16384) {r['big_s']:6.3f} s"
+                      + (f"  other client's longest wait {r['other_max_ms']:.0f} ms" if "other_max_ms" in r else ""),
+                      flush=True)
+    rows = {k: {f: float(np.median([r[f] for r in v])) for f in v[0]} for k, v in runs.items()}
     print()
     print("| path | keys | store(64) p50 ms | store(64) p99 ms | p99 / stationary | 16,384-transition store s |"
           + (" longest get_stats wait during it, ms |" if not args.no_ros else ""))
