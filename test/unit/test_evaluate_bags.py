@@ -57,3 +57,16 @@ def test_bag_without_metadata_and_empty_bag(good_bag, tmp_path, capsys):
     assert rc == 1 and "hold no EpisodeSummary messages" in err, err
     rc, _, err = _run(capsys, tmp_path / "nothing-here", "--out", tmp_path / "r3")
     assert rc == 1 and "does not exist" in err
+
+
+def test_bag_tools_name_a_damaged_bag_and_bag_repair_main_repairs_it(good_bag, tmp_path, capsys):
+    from comper_agent import bag_tools
+    bag = _copy(good_bag, tmp_path)
+    last = sorted(bag.glob("*.mcap"))[-1]
+    last.write_bytes(last.read_bytes()[:100])
+    rc = bag_tools.export_dataset_main([str(bag), "--out", str(tmp_path / "ds")])
+    err = capsys.readouterr().err
+    assert rc == 1 and f"cannot read bag {bag}" in err and "--repair" in err and "Traceback" not in err, err
+    assert bag_tools.bag_repair_main([str(bag)]) == 0
+    assert f"repaired {bag}" in capsys.readouterr().out
+    assert bag_tools.export_dataset_main([str(bag), "--out", str(tmp_path / "ds")]) == 0

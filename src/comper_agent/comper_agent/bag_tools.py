@@ -1,7 +1,10 @@
-"""Bag tools: replay a bag's transitions into a memory node; export an offline-RL dataset.
+"""Bag tools: replay a bag's transitions into a memory node; export an offline-RL dataset; repair.
 
     ros2 run comper_agent bag_to_memory runs/hopper-s0 [--memory-node memory_node] [--batch 1024]
     ros2 run comper_agent export_dataset runs/hopper-s0 --out datasets/hopper-s0
+    ros2 run comper_agent evaluate --repair runs/hopper-s0 --out -      # bag_repair_main, below
+
+A bag that cannot be read ends in one line naming it and the repair to run.
 """
 from __future__ import annotations
 
@@ -17,11 +20,22 @@ from comper_msgs_py.arrays import Transitions
 
 from . import offline
 
-__all__ = ["bag_to_memory_main", "export_dataset_main", "export_dataset", "iter_batches", "load_transitions"]
+__all__ = ["bag_to_memory_main", "export_dataset_main", "export_dataset", "iter_batches", "load_transitions",
+           "bag_repair_main"]
+
+
+def _read_runs(paths):
+    """offline.read_runs, with an unreadable bag reported as one line naming it and the repair."""
+    from .evaluate import _check_readable
+    try:
+        return offline.read_runs(paths)
+    except Exception:  # noqa: BLE001 - name the bag and what to run, else the original error
+        _check_readable(paths)
+        raise
 
 
 def load_transitions(paths, run_id: str | None = None) -> dict[str, Transitions]:
-    runs = offline.read_runs(paths)
+    runs = _read_runs(paths)
     out = {rid: r.transitions for rid, r in runs.items()
            if r.transitions is not None and len(r.transitions) and (run_id is None or rid == run_id)}
     if not out:
@@ -106,7 +120,7 @@ def export_dataset(paths, out, *, run_id: str | None = None, include_incomplete:
     """Minari-like layout: <out>/<run_id>/episode_<id>.npz with observations [T+1, ...],
     actions [T, ...], rewards [T], terminations [T], truncations [T] (+ value_labels, steps),
     and <out>/manifest.json. npz without pickles (np.load(allow_pickle=False) reads them)."""
-    runs = offline.read_runs(paths)
+    runs = _read_runs(paths)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     manifest = {"format": "comper-offline-dataset", "format_version": 1,
@@ -165,4 +179,25 @@ def export_dataset_main(argv=None) -> int:
     for d in m["datasets"]:
         print(f"{d['run_id']}: {d['total_episodes']} episodes, {d['total_steps']} steps -> {args.out}/{d['run_id']}")
     print(f"manifest: {Path(args.out) / 'manifest.json'}")
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
+def bag_repair_main(argv=None) -> int:
+    """Rebuild the metadata.yaml of bags whose recorder was killed (comper_agent.recording.repair_bag)."""
+    from .evaluate import repair
+    p = argparse.ArgumentParser(
+        prog="bag_repair",
+        description="Rebuild each bag's metadata.yaml from its complete storage files; a partial file (the one "
+                    "being written when the recorder died) is moved to <bag>/.open/, untouched.")
+    p.add_argument("paths", nargs="+", help="bag or run directories")
+    args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        results = repair(args.paths)
+    except (FileNotFoundError, ValueError, OSError) as exc:
+        print(f"bag_repair: {exc}", file=sys.stderr)
+        return 1
+    for r in results:
+        print(f"repaired {r['bag']}: {len(r['files'])} files, {r['messages']} messages"
+              + (f"; set aside in .open/: {', '.join(r['skipped'])}" if r["skipped"] else ""))
     return 0
