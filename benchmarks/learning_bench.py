@@ -284,12 +284,14 @@ def report(args, base: Path) -> dict:
                 runs = [r for r in results["runs"].values() if r["task"] == t and r["algorithm"] == a and r["evals"]]
                 if not runs:
                     continue
-                n = min(len(r["evals"]) for r in runs)
-                st = np.array([e[0] for e in runs[0]["evals"][:n]])
-                vals = np.array([[e[1] for e in r["evals"][:n]] for r in runs])
+                # the evaluations on the eval_every grid (comper_node adds one at the run's last step)
+                grid = [[e for e in r["evals"] if e[0] % args.eval_every == 0] for r in runs]
+                n = min(len(g) for g in grid)
+                st = np.array([e[0] for e in grid[0][:n]])
+                vals = np.array([[e[1] for e in g[:n]] for g in grid])
                 ax.plot(st, vals.mean(0), label=f"{a} (n={len(runs)})")
-                ax.fill_between(st, vals.mean(0) - vals.std(0), vals.mean(0) + vals.std(0), alpha=0.2)
-            ax.set_title(t)
+                ax.fill_between(st, vals.min(0), vals.max(0), alpha=0.2)
+            ax.set_title(f"{t}: mean over seeds, band = min..max")
             ax.set_xlabel("environment steps")
             ax.set_ylabel("evaluation return")
             ax.legend()
