@@ -172,12 +172,13 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
     classic_control profile by itself, stores float32 vector keys in the memory, evaluates greedy
     episodes on a separate environment (~/evaluations, metrics.jsonl, summary.json)."""
     from comper_msgs.msg import EvaluationResult
-    runs, evals = {}, {}
+    runs, evals, batches = {}, {}, {}
     for alg in ("comper", "dqn"):
         tag = f"v{alg}{os.getpid()}"
         name = f"cp_{tag}"
-        evals[alg] = []
+        evals[alg], batches[alg] = [], []
         ros_node.create_subscription(EvaluationResult, f"/{name}/evaluations", evals[alg].append, SUMMARY_QOS)
+        ros_node.create_subscription(TransitionBatch, f"/{name}/transitions", batches[alg].append, TRANSITIONS_QOS)
         extra = ["-p", f"algorithm:={alg}", "-p", "total_frames:=1500", "-p", "eval_every:=500",
                  "-p", "eval_episodes:=2", "-p", "learning_starts:=200", "-p", "checkpoint_every:=0"]
         args = _args(tmp_path, alg, tag, *extra)
@@ -204,6 +205,9 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
         assert steps[:4] == [0, 500, 1000, 1500] and steps[-1] == s["steps"], steps
         assert all(1 <= len(r["returns"]) <= 2 for r in run_io.MetricsLog.read(tmp_path / alg / "metrics.jsonl", "eval"))
         assert len(evals[alg]) >= 4 and evals[alg][0].global_step == 0
+        t = batch_to_transitions(batches[alg][0])          # each episode's transitions, raw float32 vectors
+        assert t.states.dtype == np.float32 and t.states.shape[1:] == (4,) and np.all(t.rewards == 1.0)
+        assert (t.value_labels.shape == (len(t),)) if alg == "comper" else (t.value_labels.size == 0)
     mem = json.loads((tmp_path / "comper" / "summary.json").read_text())["memory"]
     assert mem["identities"] > 1000 and mem["rtm_size"] > 0
 

@@ -415,7 +415,8 @@ class ComperNode(AgentNode):
                 self.evaluate()
                 self.next_eval += self.eval_every
             self._after_step()
-        if self.eval_every > 0 and not self.stop_event.is_set() and (not self.evals or self.evals[-1]["step"] != self.step):
+        last_eval = self.evals[-1]["step"] if self.eval_every > 0 and self.evals else None
+        if self.eval_every > 0 and not self.stop_event.is_set() and last_eval != self.step:
             self.evaluate()       # the final policy
         if self.uses_memory and self.pending:
             if self.pending[-1][6] is None:    # stopped mid-episode: label the last one too
@@ -459,8 +460,9 @@ class ComperNode(AgentNode):
         self.ep_frames0, self.ep_frames = self.frames, 0
         self.new_episode = True
         self.ep_rows: list | None = None
-        if isinstance(self.replay, FrameReplay):
-            self.replay.end_episode()
+        if self.replay is not None:
+            if isinstance(self.replay, FrameReplay):
+                self.replay.end_episode()
             if self._transitions_wanted():
                 self.ep_rows = []     # dqn stores nothing per episode: keep the rows for ~/transitions
         return obs
