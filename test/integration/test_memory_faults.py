@@ -51,15 +51,16 @@ def read_acks(path):
 
 
 def test_sigkill_during_store_reduce_and_snapshot_loses_nothing_acknowledged(launch, client_of, tmp_path):
-    """Five SIGKILLs at random moments while a client stores, commits reductions (ids reversed)
-    and writes checkpoints (snapshot_every 5 as well) and named snapshots: after each restart
-    every acknowledged store maps to the same identities and every acknowledged commit is in RTM."""
+    """Five SIGKILLs (MEMORY_FAULT_ITERATIONS) at random moments while a client stores, commits
+    reductions (ids reversed) and writes checkpoints (snapshot_every 5 as well) and named
+    snapshots: after each restart every acknowledged store maps to the same identities and every
+    acknowledged commit is in RTM."""
     storage = tmp_path / "storage"
     params = ("-p", f"storage_dir:={storage}", "-p", "snapshot_every:=5", "-p", "key_size:=26")
     rnd = random.Random(int(os.environ.get("MEMORY_FAULT_SEED", "16")))
     all_stored = {}
     committed = {}
-    for it in range(5):
+    for it in range(int(os.environ.get("MEMORY_FAULT_ITERATIONS", "5"))):
         proc, name = start(launch, f"kill{it}", *params)
         memory = client_of(name)
         s = memory.stats()

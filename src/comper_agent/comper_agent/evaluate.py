@@ -260,8 +260,9 @@ def _check_readable(paths) -> None:
                 for _ in r.messages():
                     pass
         except Exception as exc:  # noqa: BLE001 - any reader failure: name the bag
-            raise BagError(f"cannot read bag {bag}: {type(exc).__name__}: {str(exc).rstrip('.')}. The bag is truncated or "
-                           f"damaged (e.g. the recorder was killed while writing); {_repair_hint(bag)}") from None
+            raise BagError(f"cannot read bag {bag}: {type(exc).__name__}: {str(exc).rstrip('.')}. The bag is "
+                           f"truncated or damaged (e.g. the recorder was killed while writing); "
+                           f"{_repair_hint(bag)}") from None
 
 
 def evaluate(paths, out, *, checkpoint=None, gamma: float = 0.99, fqe_updates: int = 2000,
