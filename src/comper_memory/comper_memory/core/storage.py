@@ -79,10 +79,11 @@ def encode_arrays(seq: int, kind: int, arrays: dict[str, np.ndarray]) -> bytes:
     return _HEAD.pack(MAGIC, len(payload), zlib.crc32(payload)) + payload
 
 
-def decode_payload(payload: bytes) -> tuple[int, int, dict[str, np.ndarray]]:
+def decode_payload(payload, copy: bool = True) -> tuple[int, int, dict[str, np.ndarray]]:
+    """copy=False: the arrays are read-only views into ``payload`` (bytes or memoryview)."""
     seq, kind, hlen = _PAY.unpack_from(payload, 0)
     off = _PAY.size
-    header = json.loads(payload[off:off + hlen])
+    header = json.loads(bytes(payload[off:off + hlen]))
     off += hlen
     out = {}
     for name, dt, shape in header:
@@ -93,7 +94,8 @@ def decode_payload(payload: bytes) -> tuple[int, int, dict[str, np.ndarray]]:
         nbytes = count * dtype.itemsize
         if off + nbytes > len(payload):
             raise ValueError("array runs past the record")
-        out[name] = np.frombuffer(payload, dtype=dtype, count=count, offset=off).reshape(shape).copy()
+        arr = np.frombuffer(payload, dtype=dtype, count=count, offset=off).reshape(shape)
+        out[name] = arr.copy() if copy else arr
         off += nbytes
     if off != len(payload):
         raise ValueError("trailing bytes in the record")
@@ -133,11 +135,11 @@ def _record_at(data: bytes, off: int):
     end = off + _HEAD.size + length
     if end > len(data):
         return "short", len(data), None
-    payload = data[off + _HEAD.size:end]
+    payload = data[off + _HEAD.size:end]   # a memoryview: no copy of the record
     if zlib.crc32(payload) != crc:
         return "bad", end, None
     try:
-        return "ok", end, decode_payload(payload)
+        return "ok", end, decode_payload(payload, copy=False)
     except Exception:  # noqa: BLE001 - a record that does not decode is damage
         return "bad", end, None
 
@@ -145,15 +147,16 @@ def _record_at(data: bytes, off: int):
 def _records_after(data: bytes, start: int) -> tuple[int, int | None]:
     """Intact records found after a damaged spot (resynchronising on the magic), first sequence."""
     n, first = 0, None
-    pos = data.find(MAGIC, start)
+    raw = data.obj if isinstance(data, memoryview) else data   # bytes, for find()
+    pos = raw.find(MAGIC, start)
     while pos >= 0:
         status, end, rec = _record_at(data, pos)
         if status == "ok":
             n += 1
             first = rec[0] if first is None else first
-            pos = end if data[end:end + 4] == MAGIC else data.find(MAGIC, end)
+            pos = end if raw[end:end + 4] == MAGIC else raw.find(MAGIC, end)
         else:
-            pos = data.find(MAGIC, pos + 1)
+            pos = raw.find(MAGIC, pos + 1)
     return n, first
 
 
@@ -163,6 +166,7 @@ class WalScan:
     path: str
     size: int
     records: list = field(default_factory=list)   # (sequence, kind, arrays) of the intact prefix
+                                                   # (read-only views into the file's bytes)
     good_end: int = 0                              # byte offset after the last intact record
     damage: str | None = None                      # None, 'torn' or 'corrupt'
     records_after: int = 0                         # intact records after the damaged spot
@@ -182,7 +186,7 @@ class WalScan:
 def scan_wal(path: str) -> WalScan:
     """Read a WAL file without changing it: the intact prefix and what ends it (module docstring)."""
     with open(path, "rb") as f:
-        data = f.read()
+        data = memoryview(f.read())
     scan = WalScan(path, len(data))
     off = 0
     while off < len(data):
