@@ -27,5 +27,6 @@ setup(
         "evaluate = comper_agent.evaluate:main",
         "bag_to_memory = comper_agent.bag_tools:bag_to_memory_main",
         "export_dataset = comper_agent.bag_tools:export_dataset_main",
+        "bag_repair = comper_agent.bag_tools:bag_repair_main",
     ]},
 )
