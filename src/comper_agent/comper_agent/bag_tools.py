@@ -185,19 +185,11 @@ def export_dataset_main(argv=None) -> int:
 # --------------------------------------------------------------------------------------------
 def bag_repair_main(argv=None) -> int:
     """Rebuild the metadata.yaml of bags whose recorder was killed (comper_agent.recording.repair_bag)."""
-    from .evaluate import repair
+    from .evaluate import repair_command
     p = argparse.ArgumentParser(
         prog="bag_repair",
         description="Rebuild each bag's metadata.yaml from its complete storage files; a partial file (the one "
                     "being written when the recorder died) is moved to <bag>/.open/, untouched.")
     p.add_argument("paths", nargs="+", help="bag or run directories")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
-    try:
-        results = repair(args.paths)
-    except (FileNotFoundError, ValueError, OSError) as exc:
-        print(f"bag_repair: {exc}", file=sys.stderr)
-        return 1
-    for r in results:
-        print(f"repaired {r['bag']}: {len(r['files'])} files, {r['messages']} messages"
-              + (f"; set aside in .open/: {', '.join(r['skipped'])}" if r["skipped"] else ""))
-    return 0
+    return repair_command(args.paths, "bag_repair")

@@ -318,6 +318,19 @@ def evaluate(paths, out, *, checkpoint=None, gamma: float = 0.99, fqe_updates: i
     return summary
 
 
+def repair_command(paths, prog: str) -> int:
+    """Repair each bag (``repair``) and print a line per bag; one error line and 1 when a path cannot be repaired."""
+    try:
+        results = repair(paths)
+    except (FileNotFoundError, ValueError, OSError) as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return 1
+    for r in results:
+        print(f"repaired {r['bag']}: {len(r['files'])} files, {r['messages']} messages"
+              + (f"; set aside in .open/: {', '.join(r['skipped'])}" if r["skipped"] else ""))
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="ros2 run comper_agent evaluate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -338,16 +351,9 @@ def main(argv=None) -> int:
                         "repair only")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     if args.repair:
-        try:
-            results = repair(args.paths)
-        except (FileNotFoundError, ValueError, OSError) as exc:
-            print(f"evaluate --repair: {exc}", file=sys.stderr)
-            return 1
-        for r in results:
-            print(f"repaired {r['bag']}: {len(r['files'])} files, {r['messages']} messages"
-                  + (f"; set aside in .open/: {', '.join(r['skipped'])}" if r["skipped"] else ""))
-        if args.out == "-":
-            return 0
+        rc = repair_command(args.paths, "evaluate --repair")
+        if rc or args.out == "-":
+            return rc
     elif args.out == "-":
         p.error("--out - (no report) is only meaningful with --repair")
     try:
