@@ -194,7 +194,7 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
         spin_once(ros_node, 0.05)
     for alg, proc in runs.items():
         log = proc.log()
-        assert "obs [4]" in log and "profile classic_control, mlp Q-network, adam" in log, log[-3000:]
+        assert "obs [4] float32" in log and "profile classic_control, mlp Q-network, adam" in log, log[-3000:]
         cfg = yaml.safe_load((tmp_path / alg / "config.yaml").read_text())
         assert cfg["q_network"] == "mlp" and cfg["profile"]["name"] == "classic_control"
         assert cfg["learner"]["optimizer"] == "adam" and cfg["learner"]["learning_starts"] == 200  # -p wins

@@ -376,7 +376,7 @@ class ComperNode(AgentNode):
 
     def _start_line(self) -> str:
         p, c = self.p, self.cfg
-        return (f"{self.NAMES[p.algorithm]} on {p.env_id} (obs {list(self.obs_shape)} uint8, "
+        return (f"{self.NAMES[p.algorithm]} on {p.env_id} (obs {list(self.obs_shape)} {np.dtype(self.OBS_DTYPE).name}, "
                 f"{self.info.num_actions} actions, frame skip {self.frame_skip}), {p.bringup} bring-up, "
                 f"{self._resume_text()} to {p.total_frames} frames"
                 + (f" (max {p.max_steps} steps)" if p.max_steps > 0 else "")
