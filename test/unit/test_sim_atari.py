@@ -73,17 +73,22 @@ def test_preprocessing_none_gives_raw_luminance():
     np.testing.assert_array_equal(obs, b.env.ale.getScreenGrayscale())
 
 
+def _skip_by_hand(b: SimBridge, action: int) -> list[np.ndarray]:
+    """The 5 luminance screens of one frame skip, played on the bridge's ALE directly."""
+    ale, act = b.env.ale, b.env._action_set[action]
+    frames = []
+    for _ in range(5):
+        ale.act(act)
+        frames.append(ale.getScreenGrayscale().astype(np.float64))
+    return frames
+
+
 def test_observation_is_the_resized_average_of_the_last_two_frames():
     """Replay the same seeded step by hand (sticky draws come from ALE's seeded RNG)."""
     a, b = bridge(), bridge()
     a.reset(seed=7), b.reset(seed=7)
     for action in (3, 3, 4):
-        ale = b.env.ale
-        act = b.env._action_set[action]
-        frames = []
-        for _ in range(5):
-            ale.act(act)
-            frames.append(ale.getScreenGrayscale().astype(np.float64))
+        frames = _skip_by_hand(b, action)
         avg = (frames[-1] + frames[-2]) / 2
         expected = np.rint(area_resize_matrix(210, 84) @ avg @ area_resize_matrix(160, 84).T)
         got = a.step(action).observation.astype(np.float64)
@@ -99,12 +104,7 @@ def test_frame_pooling_max_is_the_resized_maximum_of_the_last_two_frames():
     a.reset(seed=7), b.reset(seed=7)
     differs = 0
     for action in (3, 3, 4, 1, 1):
-        ale = b.env.ale
-        act = b.env._action_set[action]
-        frames = []
-        for _ in range(5):
-            ale.act(act)
-            frames.append(ale.getScreenGrayscale().astype(np.float64))
+        frames = _skip_by_hand(b, action)
         pooled = np.maximum(frames[-1], frames[-2])
         expected = np.rint(area_resize_matrix(210, 84) @ pooled @ area_resize_matrix(160, 84).T)
         avg = np.rint(area_resize_matrix(210, 84) @ ((frames[-1] + frames[-2]) / 2) @ area_resize_matrix(160, 84).T)
