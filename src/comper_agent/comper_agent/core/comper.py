@@ -84,14 +84,11 @@ def linear_epsilon(frames: int, start: float = 1.0, end: float = 0.01, decay_fra
     return float(start + frac * (end - start))
 
 
-def clip_rewards(r: np.ndarray | torch.Tensor, mode: str):
+def clip_rewards(r: torch.Tensor, mode: str) -> torch.Tensor:
     """The learning signal's reward (``reward_clip``): clip = clamp to [-1, 1], sign, none = raw."""
     if mode == "none":
         return r
-    if isinstance(r, torch.Tensor):
-        return r.clamp(-1.0, 1.0) if mode == "clip" else torch.sign(r)
-    r = np.asarray(r, np.float32)
-    return np.clip(r, -1.0, 1.0) if mode == "clip" else np.sign(r)
+    return r.clamp(-1.0, 1.0) if mode == "clip" else torch.sign(r)
 
 
 def resolve_q_network(choice: str, obs_shape: tuple) -> str:
