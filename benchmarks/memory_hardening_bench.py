@@ -77,16 +77,22 @@ def pct(x, q):
     return float(np.percentile(np.asarray(x) * 1e3, q))
 
 
-def run_core(fill, timed, big):
-    from comper_memory.core import CompactMemory, MemoryConfig
-    mem = CompactMemory(MemoryConfig())
+def fill_and_time(store, fill, timed) -> list[float]:
+    """Store the `fill` batches, then the `timed` ones one call each; the seconds of each timed call."""
     for b in fill:
-        mem.store(b)
+        store(b)
     lat = []
     for b in timed:
         t0 = time.perf_counter()
-        mem.store(b)
+        store(b)
         lat.append(time.perf_counter() - t0)
+    return lat
+
+
+def run_core(fill, timed, big):
+    from comper_memory.core import CompactMemory, MemoryConfig
+    mem = CompactMemory(MemoryConfig())
+    lat = fill_and_time(mem.store, fill, timed)
     t0 = time.perf_counter()
     mem.store(big)
     big_s = time.perf_counter() - t0
@@ -108,13 +114,7 @@ def run_ros(fill, timed, big, log_dir, tag):
     try:
         if not (client.wait_for_service(60.0) and other.wait_for_service(60.0)):
             sys.exit(f"memory node did not come up: {(Path(log_dir) / f'{name}.log').read_text()}")
-        for b in fill:
-            client.store(b)
-        lat = []
-        for b in timed:
-            t0 = time.perf_counter()
-            client.store(b)
-            lat.append(time.perf_counter() - t0)
+        lat = fill_and_time(client.store, fill, timed)
         waits, done = [], threading.Event()
 
         def poll():
