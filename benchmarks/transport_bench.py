@@ -29,7 +29,8 @@ def _measure_ros(layout: str, env_id: str, steps: int) -> float:
     from rclpy.node import Node
     from rclpy.parameter import Parameter
 
-    from comper_agent.bringup import Spinner, call
+    from comper_agent.bringup import Spinner
+    from comper_msgs_py.service_client import call
     from comper_msgs.srv import Reset, Step
     from comper_msgs_py.convert import numpy_to_array
     from comper_sim.sim_node import SimNode

@@ -37,15 +37,16 @@ from rclpy.signals import SignalHandlerOptions
 
 from comper_msgs.msg import EpisodeSummary, EvaluationResult, TransitionBatch
 from comper_msgs.msg import QTModel as QTModelMsg
-from comper_msgs.srv import EnvInfo, GetStats, Reduce, Reset, Sample, Step, Store
+from comper_memory.client import MemoryClient, MemoryServiceError, ReductionClient
 from comper_msgs_py.arrays import Transitions
-from comper_msgs_py.convert import (array_to_numpy, batch_to_transitions, numpy_to_array, seq_to_numpy,
-                                    transitions_to_batch)
+from comper_msgs_py.convert import transitions_to_batch
 from comper_msgs_py.params import config_to_dict, describe, param, spec_of
 from comper_msgs_py.ros_params import declare_config
+from comper_msgs_py.service_client import PendingCall, ServiceError, wait_for_services
+from comper_sim.client import SimClient
 
 from . import run_io
-from .bringup import START_HINTS, PendingCall, ServiceError, Spinner, call, make_embedded_nodes, wait_for_services
+from .bringup import START_HINTS, Spinner, make_embedded_nodes
 from .qt_trainer_node import QT_MODEL_QOS, msg_to_qt
 
 __all__ = ["AgentNode", "AgentRunConfig", "run_main", "redefault", "episode_over", "SUMMARY_QOS",
@@ -388,26 +389,24 @@ class AgentNode(Node):
         """Service clients; wait for the services; check the sim's task."""
         p = self.p
         sim = p.sim_node.strip("/")
-        self.c_reset = self.create_client(Reset, f"/{sim}/reset")
-        self.c_step = self.create_client(Step, f"/{sim}/step")
-        self.c_info = self.create_client(EnvInfo, f"/{sim}/info")
-        clients = {"sim": self.c_step}
+        self.sim = SimClient(self, f"/{sim}", timeout=p.service_timeout_s)
+        services = {"sim": self.sim.step_client()}
+        self.memory = self.reducer_client = None
         if self.uses_memory:
             mem = p.memory_node.strip("/")
-            self.c_store = self.create_client(Store, f"/{mem}/store")
-            self.c_sample = self.create_client(Sample, f"/{mem}/sample")
-            self.c_stats = self.create_client(GetStats, f"/{mem}/get_stats")
-            clients["memory"] = self.c_store
+            self.memory = MemoryClient(self, f"/{mem}", timeout=p.service_timeout_s)
+            services["memory"] = self.memory.store_client()
             if self.reducer == "qt_trainer":
-                self.c_reduce = self.create_client(Reduce, f"/{p.qt_trainer_node.strip('/')}/reduce")
-                clients["qt_trainer"] = self.c_reduce
+                self.reducer_client = ReductionClient(self, f"/{p.qt_trainer_node.strip('/')}",
+                                                      timeout=p.service_timeout_s)
+                services["qt_trainer"] = self.reducer_client.reduce_client()
             else:
-                self.c_reduce = self.create_client(Reduce, f"/{mem}/reduce")
+                self.reducer_client = ReductionClient(self, f"/{mem}", timeout=p.service_timeout_s)
         hints = {"sim": START_HINTS["sim"].format(name=sim),
                  "memory": START_HINTS["memory"].format(name=p.memory_node),
                  "qt_trainer": START_HINTS["qt_trainer"].format(name=p.qt_trainer_node) + self.QT_START_HINT}
-        wait_for_services(clients, p.startup_timeout_s, hints, self.stop_event)
-        info = call(self.c_info, EnvInfo.Request(), p.startup_timeout_s, check=False)
+        wait_for_services(services, p.startup_timeout_s, hints, self.stop_event)
+        info = self.sim.info(timeout=p.startup_timeout_s)
         if info.env_id != p.env_id:
             raise ValueError(f"the sim node /{sim} serves {info.env_id}, not env_id:={p.env_id}; "
                              f"set -p env_id:={info.env_id} or restart the sim node")
@@ -624,20 +623,18 @@ class AgentNode(Node):
     # ------------------------------------------------------------------------------ sim
     def _reset_env(self) -> np.ndarray:
         with self.ptimers("sim"):
-            r = call(self.c_reset, Reset.Request(seed=-1), self.p.service_timeout_s)
+            obs = self.sim.reset(-1, dtype=self.OBS_DTYPE)
         self.ep_return, self.ep_len = 0.0, 0
         self.ep_parts = []
-        return np.array(array_to_numpy(r.observation), dtype=self.OBS_DTYPE)
+        return obs
 
     def _sim_step(self, action: np.ndarray):
-        """``<sim>/step``; adds the reward and the step to the episode. Returns (response, next obs)."""
-        req = Step.Request()
-        numpy_to_array(np.asarray(action, np.float32), req.action)
+        """``<sim>/step``; adds the reward and the step to the episode. Returns (StepReply, next obs)."""
         with self.ptimers("sim"):
-            r = call(self.c_step, req, self.p.service_timeout_s)
-        self.ep_return += float(r.reward)
+            r = self.sim.step(action, dtype=self.OBS_DTYPE)
+        self.ep_return += r.reward
         self.ep_len += 1
-        return r, np.array(array_to_numpy(r.observation), dtype=self.OBS_DTYPE)
+        return r, r.observation
 
     def _episode_over(self, terminated: bool, truncated: bool) -> bool:
         return episode_over(self.episode_rule, terminated, truncated)
@@ -697,32 +694,25 @@ class AgentNode(Node):
 
     # ------------------------------------------------------------------------------ memory
     def _get_stats(self) -> dict:
-        s = call(self.c_stats, GetStats.Request(), self.p.service_timeout_s, check=False).stats
-        d = {k: getattr(s, k) for k in ("identities", "tm_sets", "rtm_size", "transitions_stored",
-                                         "similarity_hits", "hit_rate", "compaction_ratio", "reductions",
-                                         "sets_reduced", "evictions", "bytes_used")}
-        d = {k: (float(v) if isinstance(v, float) else int(v)) for k, v in d.items()}
+        d = self.memory.stats()
         self.rtm_size, self.tm_sets = d["rtm_size"], d["tm_sets"]
         return d
 
-    def _next_batch(self, k: int, source: int, updates_before_reduce: int):
+    def _next_batch(self, k: int, source: str, updates_before_reduce: int):
         """(batch, counts) for the next update: a prefetched one, or one sample call that draws the
         batches of min(prefetch_batches, updates_before_reduce) updates from RTM (one batch from TM).
         None when the memory refuses (fewer entries than k: evictions, TM drained); the caller
-        refreshes its sizes. ``_reduce_call`` drops what is left when the RTM changes."""
+        refreshes its sizes. ``_reduce_finish`` drops what is left when the RTM changes."""
         if self.prefetched:
             return self.prefetched.pop()
         n = 1
-        if source == Sample.Request.SOURCE_RTM:
+        if source == "rtm":
             n = max(1, min(int(self.p.prefetch_batches), int(updates_before_reduce)))
         with self.ptimers("memory"):
-            r = call(self.c_sample, Sample.Request(batch_size=int(k), source=source, seed=-1, num_batches=n),
-                     self.p.service_timeout_s, check=False)
-        if not r.success:
-            return None
-        with self.ptimers("convert"):
-            t = batch_to_transitions(r.batch, validate=False)
-            counts = seq_to_numpy(r.counts, np.uint32).copy()
+            try:
+                t, _, counts = self.memory.sample(int(k), source, num_batches=n)
+            except MemoryServiceError:
+                return None
         self.sample_calls += 1
         if n == 1:
             return t, counts
@@ -735,8 +725,7 @@ class AgentNode(Node):
         return self._reduce_finish(self._reduce_send())
 
     def _reduce_send(self) -> PendingCall:
-        p = self.p
-        return PendingCall(self.c_reduce, Reduce.Request(max_sets=int(p.reduce_batch), epochs=int(p.qt_epochs)))
+        return self.reducer_client.send(int(self.p.reduce_batch), int(self.p.qt_epochs))
 
     def _reduce_overlapped(self) -> bool:
         """reduce_overlap: wait for the reduction in flight (if any), send the next one and return True (the
@@ -763,13 +752,13 @@ class AgentNode(Node):
         """Hook: after each reduction's answer (metrics)."""
 
     def _reduce_finish(self, pending: PendingCall):
-        r = pending.result(self.p.service_timeout_s)
+        r = self.reducer_client.reply(pending)
         self.prefetched.clear()     # drawn from the RTM this reduction changed: not used
         self.ptimers.add("qt_server" if self.reducer == "qt_trainer" else "memory_reduce_server", r.duration_s, 0)
-        self.rtm_size = int(r.rtm_size)
+        self.rtm_size = r.rtm_size
         self.reductions += 1
-        self.last_reduce = {"sets": int(r.sets_reduced), "qt_version": int(r.qt_version),
-                            "qt_loss": float(r.qt_loss), "duration_s": float(r.duration_s)}
+        self.last_reduce = {"sets": r.sets_reduced, "qt_version": r.qt_version,
+                            "qt_loss": r.qt_loss, "duration_s": r.duration_s}
         return r
 
     def _wait_qt_model(self, version: int) -> None:
@@ -786,11 +775,11 @@ class AgentNode(Node):
         probe_ms = float("nan")
         calls = sum(self.ptimers.calls.get(k, 0) for k in self.TIMED_CALLS)
         if p.transport_probe_calls > 0 and not self.stop_event.is_set():
-            client, req = (self.c_stats, GetStats.Request()) if self.uses_memory else (self.c_info, EnvInfo.Request())
+            probe = functools.partial(self.memory.stats if self.uses_memory else self.sim.info, timeout=10.0)
             try:
                 t0 = time.perf_counter()
                 for _ in range(p.transport_probe_calls):
-                    call(client, req, 10.0, check=False)
+                    probe()
                 probe_ms = 1000.0 * (time.perf_counter() - t0) / p.transport_probe_calls
             except ServiceError:
                 pass

@@ -1,10 +1,9 @@
-"""Bring-up helpers shared by the learner nodes (COMCACT now, COMPER later).
+"""Bring-up helpers shared by the learner nodes (comcact_node, comper_node).
 
 * :class:`Spinner` - each node of a set spun by its own executor in a background thread, so the
-  learner loop can run in the main thread and wait on service futures.
-* :func:`call` - a blocking service call from a thread that does not spin (call_async + an
-  Event set by the future's done callback); raises :class:`ServiceError` with what to do.
-* :func:`wait_for_services` - wait for a set of services, naming the missing ones and how to start them.
+  learner loop can run in the main thread and wait on service answers (the clients and their
+  blocking calls: :mod:`comper_msgs_py.service_client`).
+* :data:`START_HINTS` - how to start each node the learner needs, for the "not available" error.
 * :func:`make_embedded_nodes` - the simulation, memory and QT trainer nodes built in this process
   (``bringup:=embedded``): separate node objects that talk to the learner only through ROS.
 
@@ -14,7 +13,6 @@ needs their names.
 from __future__ import annotations
 
 import threading
-import time
 from dataclasses import dataclass, field
 
 from rclpy.node import Node
@@ -22,80 +20,13 @@ from rclpy.parameter import Parameter
 
 from comper_msgs_py.ros_main import default_executor
 
-__all__ = ["ServiceError", "Spinner", "PendingCall", "call", "wait_for_services", "make_embedded_nodes",
-           "EmbeddedNodes", "START_HINTS"]
+__all__ = ["Spinner", "make_embedded_nodes", "EmbeddedNodes", "START_HINTS"]
 
 START_HINTS = {
     "sim": "ros2 run comper_sim sim_node --ros-args -p env_id:=<task> -r __node:={name}",
     "memory": "ros2 run comper_memory memory_node --ros-args -r __node:={name}",
     "qt_trainer": "ros2 run comper_agent qt_trainer_node --ros-args -p memory_node:=<memory> -r __node:={name}",
 }
-
-
-class ServiceError(RuntimeError):
-    """A service call failed: unavailable, timed out, refused (success false) or interrupted."""
-
-
-class PendingCall:
-    """A service call in flight, made from a non-spinning thread (the node is spun elsewhere):
-    ``done()`` polls, ``result(timeout)`` waits for the answer."""
-
-    def __init__(self, client, request, what: str | None = None):
-        self.client = client
-        self.name = what or client.srv_name
-        self._done = threading.Event()
-        self.future = client.call_async(request)
-        self.future.add_done_callback(lambda _f: self._done.set())
-
-    def done(self) -> bool:
-        return self._done.is_set()
-
-    def result(self, timeout: float = 60.0, *, check: bool = True):
-        """The response; ServiceError on timeout, cancellation, an exception, or (check) success false."""
-        name, future = self.name, self.future
-        if not self._done.wait(timeout):
-            self.client.remove_pending_request(future)
-            raise ServiceError(f"{name}: no answer within {timeout:g} s (is the node still running?)")
-        if future.cancelled():
-            raise ServiceError(f"{name}: the call was cancelled (shutting down?)")
-        exc = future.exception()
-        if exc is not None:
-            raise ServiceError(f"{name}: {type(exc).__name__}: {exc}")
-        response = future.result()
-        if response is None:
-            raise ServiceError(f"{name}: no response (context shut down?)")
-        if check and hasattr(response, "success") and not response.success:
-            raise ServiceError(f"{name} refused: {response.message}")
-        return response
-
-
-def call(client, request, timeout: float = 60.0, *, what: str | None = None, check: bool = True):
-    """Blocking call from a non-spinning thread; the node must be spun by an executor elsewhere.
-
-    check: raise ServiceError when the response has ``success == False`` (with its message)."""
-    return PendingCall(client, request, what).result(timeout, check=check)
-
-
-def wait_for_services(clients: dict, timeout: float, hints: dict | None = None,
-                      stop: threading.Event | None = None) -> None:
-    """Wait until every client's service is available; raise ServiceError listing the missing ones.
-
-    clients: label -> client; hints: label -> how to start the server."""
-    deadline = time.monotonic() + timeout
-    pending = dict(clients)
-    while pending:
-        for label, c in list(pending.items()):
-            if c.service_is_ready():
-                del pending[label]
-        if not pending:
-            return
-        if time.monotonic() > deadline or (stop is not None and stop.is_set()):
-            lines = [f"  {c.srv_name}" + (f"   (start it: {hints[label]})" if hints and label in hints else "")
-                     for label, c in pending.items()]
-            raise ServiceError(f"services not available after {timeout:g} s:\n" + "\n".join(lines) +
-                               "\n(check node names, ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE, "
-                               "or use bringup:=embedded)")
-        time.sleep(0.05)
 
 
 class Spinner:

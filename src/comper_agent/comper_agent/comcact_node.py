@@ -45,15 +45,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from comper_msgs.srv import Sample, Store, StepMany
 from comper_msgs_py.arrays import Transitions
-from comper_msgs_py.convert import (array_to_numpy, batch_to_transitions, numpy_to_array,
-                                    seq_to_numpy, transitions_to_batch)
+from comper_msgs_py.convert import seq_to_numpy
 from comper_msgs_py.params import param
 
-from . import run_io
 from .agent_node import SUMMARY_QOS, AgentNode, AgentRunConfig, episode_over, run_main
-from .bringup import call
 from .core.config import ComcactConfig, DDPGConfig
 
 __all__ = ["ComcactNode", "ComcactNodeConfig", "main", "SUMMARY_QOS"]
@@ -120,10 +116,6 @@ class ComcactNode(AgentNode):
     def _configure(self) -> None:
         self.comcact = self.uses_memory = self.uses_qt = self.p.algorithm == "comcact"
         self.reducer = "qt_trainer" if self.comcact else "none"
-
-    def _connect(self) -> None:
-        self.c_step_many = self.create_client(StepMany, f"/{self.p.sim_node.strip('/')}/step_many")
-        super()._connect()
 
     def _check_env(self, info) -> None:
         if info.discrete:
@@ -246,11 +238,9 @@ class ComcactNode(AgentNode):
     def _warmup_chunk(self, obs: np.ndarray, n: int) -> np.ndarray:
         n = max(1, min(int(n), 1000))
         acts = self.rng.uniform(self.low, self.high, size=(n, self.action_dim)).astype(np.float32)
-        req = StepMany.Request(autoreset=True)
-        numpy_to_array(acts, req.actions)
         with self.ptimers("sim"):
-            r = call(self.c_step_many, req, self.p.service_timeout_s)
-        t = batch_to_transitions(r.transitions)
+            r = self.sim.step_many(acts, autoreset=True, dtype=np.float32)
+        t = r.transitions
         over = np.array([episode_over(self.episode_rule, a, b) for a, b in zip(t.terminated, t.truncated)])
         ends_before = np.concatenate([[0], np.cumsum(over)[:-1]]).astype(np.uint64)
         t = Transitions(states=np.array(t.states, np.float32), actions=np.array(t.actions, np.float32),
@@ -270,7 +260,7 @@ class ComcactNode(AgentNode):
                 self.learner.reset_noise()
         if seg < len(t):
             self._store(t.take(slice(seg, len(t))))
-        return np.array(array_to_numpy(r.observation), dtype=np.float32)
+        return r.observation
 
     # ------------------------------------------------------------------------------ memory
     def _store(self, t: Transitions) -> None:
@@ -282,10 +272,8 @@ class ComcactNode(AgentNode):
         else:
             with self.ptimers("learner"):
                 t.value_labels = self.learner.value_labels(t)
-            req = Store.Request()
-            transitions_to_batch(t, req.batch)
             with self.ptimers("memory"):
-                call(self.c_store, req, self.p.service_timeout_s)
+                self.memory.store(t)
         self.stored += len(t)
         self.ep_parts.append(t)
 
@@ -305,12 +293,12 @@ class ComcactNode(AgentNode):
         """The next update batch: from RTM (prefetched up to the next reduction, AgentNode._next_batch),
         from TM while RTM is empty (Algorithm 8 lines 14-17)."""
         k = self.cfg.batch_size
-        source = Sample.Request.SOURCE_RTM
+        source = "rtm"
         if self.rtm_size <= 1 and not self.prefetched:
             with self.ptimers("memory"):
                 stats = self._get_stats()
             if self.rtm_size <= 1:
-                source, avail = Sample.Request.SOURCE_TM, stats["tm_sets"]
+                source, avail = "tm", stats["tm_sets"]
             else:
                 avail = self.rtm_size
         else:

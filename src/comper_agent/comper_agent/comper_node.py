@@ -55,14 +55,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from comper_msgs.srv import Sample, Store
 from comper_msgs_py.arrays import Transitions
-from comper_msgs_py.convert import batch_to_transitions, seq_to_numpy, transitions_to_batch
 from comper_msgs_py.params import param
 
 from . import run_io
 from .agent_node import SUMMARY_QOS, AgentNode, AgentRunConfig, redefault, run_main
-from .bringup import call
 from .core.config import COMPER_PROFILES, ComperConfig, DQNConfig, resolve_profile
 
 __all__ = ["ComperNode", "ComperNodeConfig", "FrameReplay", "protocol_summary", "main", "SUMMARY_QOS",
@@ -287,7 +284,7 @@ class ComperNode(AgentNode):
             self.reducer = "none"
         if self.uses_qt and self.reducer != "qt_trainer":
             raise ValueError(f"{p.algorithm} needs QT: use reducer:=qt_trainer (or auto)")
-        self.sample_source = Sample.Request.SOURCE_TM if p.algorithm == "comper_m" else Sample.Request.SOURCE_RTM
+        self.sample_source = "tm" if p.algorithm == "comper_m" else "rtm"
 
     def _sim_protocol(self) -> dict:
         """The sim parameters the learner's settings fix (ALE: frames per observation, frame pooling)."""
@@ -558,11 +555,8 @@ class ComperNode(AgentNode):
         if not parts:
             return
         t = parts[0] if len(parts) == 1 else Transitions.concatenate(parts)
-        with self.ptimers("convert"):
-            req = Store.Request()
-            transitions_to_batch(t, req.batch)
         with self.ptimers("memory"):
-            call(self.c_store, req, self.p.service_timeout_s)
+            self.memory.store(t)
 
     # ------------------------------------------------------------------------------ memory
     def _reduce(self) -> None:
@@ -584,7 +578,7 @@ class ComperNode(AgentNode):
         """(batch, set sizes) for the next update: from RTM prefetched up to the next reduction
         (AgentNode._next_batch), from TM (COMPER-M) one call per update."""
         k = self.cfg.batch_size
-        if self.sample_source == Sample.Request.SOURCE_RTM:
+        if self.sample_source == "rtm":
             k = min(k, self.rtm_size)
         if k < 1:
             return None
@@ -593,7 +587,7 @@ class ComperNode(AgentNode):
         if got is None:     # fewer entries than asked (TM drained by a reduction, RTM evictions)
             with self.ptimers("memory"):
                 st = self._get_stats()
-            avail = st["tm_sets"] if self.sample_source == Sample.Request.SOURCE_TM else st["rtm_size"]
+            avail = st["tm_sets"] if self.sample_source == "tm" else st["rtm_size"]
             k = min(k, avail)
             if k < 1:
                 return None
@@ -640,7 +634,7 @@ class ComperNode(AgentNode):
             self.set_counts.append(counts)
             targets = None
             if self.uses_qt:
-                if p.qt_targets == "rtm" and self.sample_source == Sample.Request.SOURCE_RTM:
+                if p.qt_targets == "rtm" and self.sample_source == "rtm":
                     targets = batch.value_labels
                 else:
                     with self.qt_cond:
@@ -698,7 +692,7 @@ class ComperNode(AgentNode):
                    "session_steps_per_s": steps / elapsed if elapsed > 0 else None,
                    "session_frames": frames, "memory": self.last_stats, "timers": timers,
                    "sampling": {"source": ("replay" if not self.uses_memory else
-                                           "tm" if self.sample_source == Sample.Request.SOURCE_TM else "rtm"),
+                                           self.sample_source),
                                 "target": "qt" if self.uses_qt else "target_network",
                                 "reducer": self.reducer, "sample_calls": int(self.sample_calls),
                                 "restored": int(self.restored)}}

@@ -21,10 +21,8 @@ import json
 import sys
 import threading
 import time
-from dataclasses import dataclass
 
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
@@ -32,13 +30,12 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from comper_msgs.msg import QTModel as QTModelMsg
-from comper_msgs.srv import Reduce, ReduceBegin, ReduceCommit
-from comper_msgs_py.convert import (array_to_numpy, batch_to_transitions, numpy_to_array,
-                                    numpy_to_seq, seq_to_numpy)
+from comper_memory.client import MemoryClient, MemoryServiceError
+from comper_msgs.srv import Reduce
+from comper_msgs_py.convert import array_to_numpy, numpy_to_array, numpy_to_seq, seq_to_numpy
 from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
-
-from .bringup import ServiceError, call
+from comper_msgs_py.service_client import ServiceError
 from .core.config import ComcactQTConfig, QTConfig
 
 __all__ = ["QtTrainerNode", "QT_MODEL_QOS", "qt_to_msg", "msg_to_qt", "main"]
@@ -81,19 +78,6 @@ def msg_to_qt(msg: QTModelMsg, device: str | None = "cpu"):
         input_std=seq_to_numpy(msg.input_std, np.float32).copy(),
         label_mean=float(msg.label_mean), label_std=float(msg.label_std), version=int(msg.version),
         train_loss=float(msg.train_loss), train_sets=int(msg.train_sets), device=device)
-
-
-@dataclass
-class _Lease:
-    reduction_id: int
-    identity_ids: np.ndarray
-    representatives: object
-    label_history: np.ndarray
-    history_lengths: np.ndarray
-    counts: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.identity_ids.shape[0])
 
 
 def _desc(text: str) -> ParameterDescriptor:
@@ -144,10 +128,8 @@ class QtTrainerNode(Node):
         self.last_duration_s = 0.0
 
         self._group = ReentrantCallbackGroup()
-        self._begin = self.create_client(ReduceBegin, f"/{self.memory_name}/reduce_begin",
-                                         callback_group=self._group)
-        self._commit = self.create_client(ReduceCommit, f"/{self.memory_name}/reduce_commit",
-                                          callback_group=self._group)
+        self.memory = MemoryClient(self, f"/{self.memory_name}", timeout=self.call_timeout_s,
+                                   callback_group=self._group)
         self._pub = self.create_publisher(QTModelMsg, "~/qt_model", QT_MODEL_QOS)
         self.create_service(Reduce, "~/reduce", self._on_reduce, callback_group=self._group)
         if self.period_s > 0:
@@ -187,36 +169,28 @@ class QtTrainerNode(Node):
         from .core.qt import reduction_predictor
         with self._lock:
             t0 = time.monotonic()
-            if not self._begin.service_is_ready() and not self._begin.wait_for_service(timeout_sec=5.0):
+            if not self.memory.ready() and not self.memory.wait_for_service(5.0):
                 raise ServiceError(f"/{self.memory_name}/reduce_begin is not available")
-            req = ReduceBegin.Request(max_sets=int(max_sets or self.reduce_batch))
-            begin = call(self._begin, req, self.call_timeout_s, what=f"/{self.memory_name}/reduce_begin")
-            s = begin.sets
-            ids = seq_to_numpy(s.identity_ids, np.uint64)
-            m = int(ids.shape[0])
+            lease = self.memory.reduce_begin(int(max_sets or self.reduce_batch))
+            m = len(lease)
             loss = float("nan")
             if m == 0:
                 # nothing in TM: commit the empty lease so the memory can forget it
-                commit = call(self._commit, ReduceCommit.Request(reduction_id=s.reduction_id),
-                              self.call_timeout_s, what=f"/{self.memory_name}/reduce_commit", check=False)
-                return {"sets_reduced": 0, "rtm_size": int(commit.rtm_size), "qt_version": self.qt.version,
+                try:
+                    rtm_size = self.memory.reduce_commit(lease.reduction_id, [], []).rtm_size
+                except MemoryServiceError:
+                    rtm_size = int(self.memory.stats()["rtm_size"])
+                return {"sets_reduced": 0, "rtm_size": rtm_size, "qt_version": self.qt.version,
                         "qt_loss": loss, "duration_s": time.monotonic() - t0,
                         "message": "TM is empty: nothing to reduce"}
-            lease = _Lease(int(s.reduction_id), ids, batch_to_transitions(s.representatives),
-                           seq_to_numpy(s.label_history, np.float32),
-                           seq_to_numpy(s.history_lengths, np.uint32).astype(np.int64),
-                           seq_to_numpy(s.counts, np.uint32))
             predict = reduction_predictor(self.qt, epochs=int(epochs) or None, key_fn=self.key_fn)
             preds = np.asarray(predict(lease), np.float32)
             loss = float(self.qt.train_loss)
-            creq = ReduceCommit.Request(reduction_id=lease.reduction_id)
-            creq.identity_ids = numpy_to_seq(ids, np.uint64)
-            creq.predictions = numpy_to_seq(preds, np.float32)
-            commit = call(self._commit, creq, self.call_timeout_s, what=f"/{self.memory_name}/reduce_commit")
+            commit = self.memory.reduce_commit(lease.reduction_id, lease.identity_ids, preds)
             self.reductions += 1
             self.publish_model()
             self.last_duration_s = time.monotonic() - t0
-            return {"sets_reduced": int(commit.committed), "rtm_size": int(commit.rtm_size),
+            return {"sets_reduced": commit.committed, "rtm_size": commit.rtm_size,
                     "qt_version": int(self.qt.version), "qt_loss": loss, "duration_s": self.last_duration_s,
                     "message": f"reduced {m} sets"}
 
@@ -244,7 +218,7 @@ class QtTrainerNode(Node):
         return response
 
     def _on_timer(self) -> None:
-        if not self._begin.service_is_ready():
+        if not self.memory.ready():
             return
         try:
             out = self.reduce()

@@ -27,39 +27,46 @@ Two ways to use it:
             memory.wait_for_service(10.0)
             ids = memory.store(transitions).identity_ids
 
-Errors: a request the node refuses raises :class:`MemoryServiceError` carrying the node's
-message (nothing was changed by the refused call); no answer within the timeout raises
-``TimeoutError``; a node that is not spun by any executor raises ``RuntimeError`` at once.
+Errors (``comper_msgs_py.service_client``): a request the node refuses raises
+:class:`MemoryServiceError` (a ``ServiceRefused``) carrying the node's message (nothing was changed
+by the refused call); no answer within the timeout raises ``ServiceTimeout`` (a ``TimeoutError``);
+a node that is not spun by any executor raises ``RuntimeError`` at once.
 Conversions go through :mod:`comper_msgs_py.convert` only (no per-element work).
+
+:class:`ReductionClient` calls the ``<reducer>/reduce`` service that both the memory node (labels
+as predictions) and the QT trainer (QT's predictions) serve.
 """
 from __future__ import annotations
 
-import threading
-import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from comper_msgs.msg import MemoryStats
 from comper_msgs.srv import GetStats, Reduce, ReduceBegin, ReduceCommit, Sample, Snapshot, Store
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.convert import batch_to_transitions, numpy_to_seq, seq_to_numpy, transitions_to_batch
+from comper_msgs_py.service_client import PendingCall, ServiceClient, ServiceRefused
 
-__all__ = ["MemoryClient", "MemoryServiceError", "StoreReply", "ReductionSets", "ReduceReply",
-           "CommitReply", "SOURCES"]
+__all__ = ["MemoryClient", "ReductionClient", "MemoryServiceError", "StoreReply", "ReductionSets",
+           "ReduceReply", "CommitReply", "SOURCES", "STATS_FIELDS", "stats_to_dict"]
 
 SOURCES = {"rtm": Sample.Request.SOURCE_RTM, "tm": Sample.Request.SOURCE_TM}
-_STATS_FIELDS = ("key_size", "delta", "identities", "tm_sets", "rtm_size", "transitions_stored",
-                 "similarity_hits", "hit_rate", "compaction_ratio", "reductions", "sets_reduced",
-                 "evictions", "bytes_used", "wal_sequence")
+#: the MemoryStats fields, in the message's order (the message definition is their one source)
+STATS_FIELDS = tuple(k for k in MemoryStats.get_fields_and_field_types() if k != "header")
 
 
-class MemoryServiceError(RuntimeError):
+def stats_to_dict(msg: MemoryStats) -> dict:
+    """A MemoryStats message as {field: int | float} (every field but the header)."""
+    out = {}
+    for k in STATS_FIELDS:
+        v = getattr(msg, k)
+        out[k] = float(v) if isinstance(v, float) else int(v)
+    return out
+
+
+class MemoryServiceError(ServiceRefused):
     """The memory node refused a request (success=false); ``message`` is the node's reason."""
-
-    def __init__(self, service: str, message: str):
-        super().__init__(f"{service}: {message}")
-        self.service = service
-        self.message = message
 
 
 @dataclass
@@ -96,6 +103,13 @@ class ReduceReply:
     rtm_size: int
     duration_s: float
     message: str
+    qt_version: int = 0      # the QT trainer's model version after this reduction (0: memory node)
+    qt_loss: float = float("nan")
+
+    @classmethod
+    def from_response(cls, r) -> "ReduceReply":
+        return cls(int(r.sets_reduced), int(r.rtm_size), float(r.duration_s), r.message, int(r.qt_version),
+                   float(r.qt_loss))
 
 
 @dataclass
@@ -105,120 +119,41 @@ class CommitReply:
     message: str
 
 
-class MemoryClient:
+class MemoryClient(ServiceClient):
     """Client of one memory node (services ``<memory_node>/store`` etc.).
 
-    node: an rclpy node spun by an executor in another thread (see the module docstring).
-    memory_node: the memory node's name, or its fully qualified name ('/ns/memory_node');
-    a relative name resolves in this node's namespace.
+    node: an rclpy node spun by an executor in another thread (see the module docstring), or
+    ``MemoryClient.standalone(memory_node)``. memory_node: the memory node's name, or its fully
+    qualified name ('/ns/memory_node'); a relative name resolves in this node's namespace.
     timeout: default seconds per call (each method also takes ``timeout=``).
     """
 
+    REFUSED = MemoryServiceError
+    NODE_NAME = "memory_client"
+
     def __init__(self, node, memory_node: str = "memory_node", *, timeout: float = 30.0,
                  callback_group=None):
-        self.node = node
-        self.memory_node = memory_node.rstrip("/")
-        self.timeout = float(timeout)
-        self._owned = None  # (context_owned, executor, thread) for standalone clients
+        super().__init__(node, memory_node, timeout=timeout, callback_group=callback_group)
+        self.memory_node = self.server
+        self._store = self._make(Store, "store")
+        self._sample = self._make(Sample, "sample")
+        self._reduce = self._make(Reduce, "reduce")
+        self._begin = self._make(ReduceBegin, "reduce_begin")
+        self._commit = self._make(ReduceCommit, "reduce_commit")
+        self._stats = self._make(GetStats, "get_stats")
+        self._snapshot = self._make(Snapshot, "snapshot")
 
-        def make(srv_type, name):
-            return node.create_client(srv_type, f"{self.memory_node}/{name}", callback_group=callback_group)
-
-        self._store = make(Store, "store")
-        self._sample = make(Sample, "sample")
-        self._reduce = make(Reduce, "reduce")
-        self._begin = make(ReduceBegin, "reduce_begin")
-        self._commit = make(ReduceCommit, "reduce_commit")
-        self._stats = make(GetStats, "get_stats")
-        self._snapshot = make(Snapshot, "snapshot")
-        self._clients = (self._store, self._sample, self._reduce, self._begin, self._commit,
-                         self._stats, self._snapshot)
-
-    # --- construction -------------------------------------------------------------------------
     @classmethod
     def standalone(cls, memory_node: str = "memory_node", context=None, *, node_name: str | None = None,
                    timeout: float = 30.0) -> "MemoryClient":
-        """A client with its own node and a background executor thread.
+        """A client with its own node and a background executor thread (``close()`` or ``with``
+        tears them down). context=None: a private rclpy context is created and shut down by
+        ``close()``; a given context must already be initialised and is left running."""
+        return super().standalone(memory_node, context, node_name=node_name, timeout=timeout)
 
-        context=None: a private rclpy context is created (``rclpy.init(context=...)``) and shut
-        down by ``close()``; a given context must already be initialised and is left running.
-        """
-        import os
-
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
-
-        own_context = context is None
-        if own_context:
-            context = rclpy.Context()
-            rclpy.init(context=context)
-        try:
-            name = node_name or f"memory_client_{os.getpid()}_{id(context) % 100000}"
-            # a pure client: no parameter services, so each executor round has less to wait on
-            node = Node(name, context=context, start_parameter_services=False)
-            executor = SingleThreadedExecutor(context=context)
-            executor.add_node(node)
-        except Exception:
-            if own_context:
-                context.try_shutdown()
-            raise
-        thread = threading.Thread(target=_spin, args=(executor,), name=f"{name}_executor", daemon=True)
-        thread.start()
-        client = cls(node, memory_node, timeout=timeout)
-        client._owned = (context if own_context else None, executor, thread)
-        return client
-
-    def close(self) -> None:
-        """Destroy the service clients; a standalone client also stops its executor thread,
-        destroys its node and shuts its private context down. Idempotent."""
-        owned, self._owned = self._owned, None
-        if owned is not None:
-            context, executor, thread = owned
-            executor.shutdown(timeout_sec=5.0)
-            thread.join(timeout=5.0)
-            self.node.destroy_node()
-            if context is not None:
-                context.try_shutdown()
-        elif self._clients:
-            for c in self._clients:
-                self.node.destroy_client(c)
-        self._clients = ()
-
-    def __enter__(self) -> "MemoryClient":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    # --- plumbing -----------------------------------------------------------------------------
-    def wait_for_service(self, timeout: float | None = None) -> bool:
-        """True once every service of the memory node is available (False after `timeout` s)."""
-        deadline = time.monotonic() + (self.timeout if timeout is None else float(timeout))
-        for c in self._clients:
-            if not c.wait_for_service(timeout_sec=max(0.0, deadline - time.monotonic())):
-                return False
-        return True
-
-    def _call(self, client, request, timeout: float | None):
-        if self.node.executor is None:
-            raise RuntimeError(f"MemoryClient: node {self.node.get_name()!r} is not spun by any executor; "
-                               "spin it in a background thread or use MemoryClient.standalone()")
-        timeout = self.timeout if timeout is None else float(timeout)
-        done = threading.Event()
-        future = client.call_async(request)
-        future.add_done_callback(_waker(done))
-        if not done.wait(timeout):
-            client.remove_pending_request(future)
-            future.cancel()
-            raise TimeoutError(f"{client.srv_name}: no answer within {timeout:g} s "
-                               "(is memory_node running and this node spun by an executor?)")
-        response = future.result()
-        if response is None:
-            raise TimeoutError(f"{client.srv_name}: the call was cancelled")
-        if getattr(response, "success", True) is False:
-            raise MemoryServiceError(client.srv_name, response.message)
-        return response
+    def store_client(self):
+        """The rclpy client of ``<memory_node>/store`` (for :func:`wait_for_services`)."""
+        return self._store
 
     # --- the memory's operations --------------------------------------------------------------
     def store(self, transitions: Transitions, *, timeout: float | None = None) -> StoreReply:
@@ -247,8 +182,7 @@ class MemoryClient:
     def reduce(self, max_sets: int = 0, *, timeout: float | None = None) -> ReduceReply:
         """One-call reduction on the memory node (prediction = each set's newest label);
         max_sets 0 = the node's reduce_batch."""
-        r = self._call(self._reduce, Reduce.Request(max_sets=int(max_sets)), timeout)
-        return ReduceReply(int(r.sets_reduced), int(r.rtm_size), float(r.duration_s), r.message)
+        return ReduceReply.from_response(self._call(self._reduce, Reduce.Request(max_sets=int(max_sets)), timeout))
 
     def reduce_begin(self, max_sets: int = 0, *, timeout: float | None = None) -> ReductionSets:
         """Phase 1: lease up to max_sets (0 = reduce_batch) oldest TM sets."""
@@ -270,8 +204,7 @@ class MemoryClient:
 
     def stats(self, *, timeout: float | None = None) -> dict:
         """The node's MemoryStats as a dict (keys as in comper_msgs/msg/MemoryStats)."""
-        s = self._call(self._stats, GetStats.Request(), timeout).stats
-        return {name: getattr(s, name) for name in _STATS_FIELDS}
+        return stats_to_dict(self._call(self._stats, GetStats.Request(), timeout).stats)
 
     def snapshot(self, path: str = "", *, timeout: float | None = None) -> tuple[str, int]:
         """Save a verified snapshot: '' = the node's storage_dir (checkpoint + WAL rotation), a
@@ -289,18 +222,28 @@ class MemoryClient:
         return r.path, int(r.wal_sequence)
 
 
-def _waker(event: threading.Event):
-    def wake(_future) -> None:
-        event.set()
-        # runs in the executor thread: give the GIL up once so the woken caller runs now instead
-        # of after the executor's next round of Python bookkeeping (up to the switch interval)
-        time.sleep(0)
-    return wake
+class ReductionClient(ServiceClient):
+    """Client of a ``<reducer>/reduce`` service: the QT trainer's (QT trains on the popped sets and
+    predicts their targets) or the memory node's (each set's newest label). ``send`` starts a
+    reduction and returns at once (the caller may go on learning: ``reduce_overlap``); ``reply``
+    waits for its answer."""
 
+    def __init__(self, node, reducer: str, *, timeout: float = 120.0, callback_group=None):
+        super().__init__(node, reducer, timeout=timeout, callback_group=callback_group)
+        self._reduce = self._make(Reduce, "reduce")
 
-def _spin(executor) -> None:
-    from rclpy.executors import ExternalShutdownException
-    try:
-        executor.spin()
-    except (ExternalShutdownException, KeyboardInterrupt):
-        pass
+    def reduce_client(self):
+        """The rclpy client of ``<reducer>/reduce`` (for :func:`wait_for_services`)."""
+        return self._reduce
+
+    def send(self, max_sets: int = 0, epochs: int = 0) -> PendingCall:
+        """Start one reduction (max_sets / epochs 0 = the server's reduce_batch / qt_epochs)."""
+        return self._send(self._reduce, Reduce.Request(max_sets=int(max_sets), epochs=int(epochs)))
+
+    def reply(self, pending: PendingCall, timeout: float | None = None) -> ReduceReply:
+        """The answer of a reduction started by :meth:`send`."""
+        return ReduceReply.from_response(pending.result(self.timeout if timeout is None else float(timeout)))
+
+    def reduce(self, max_sets: int = 0, epochs: int = 0, *, timeout: float | None = None) -> ReduceReply:
+        """One blocking reduction."""
+        return self.reply(self.send(max_sets, epochs), timeout)

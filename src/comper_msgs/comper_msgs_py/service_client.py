@@ -1,0 +1,235 @@
+"""Blocking service calls for rclpy learners, and the base of the suite's service clients.
+
+Every client of the suite (``comper_memory.client.MemoryClient`` and ``ReductionClient``,
+``comper_sim.client.SimClient``) is a :class:`ServiceClient`: it makes its rclpy clients on a node
+that an executor spins in *another* thread, and each call blocks the calling thread on a
+``threading.Event`` until that executor delivers the answer (it never spins). The suite's own
+learners and QT trainer use these clients, so they are the first users of the API other learners get.
+
+Errors (all :class:`ServiceError`, a ``RuntimeError``):
+
+* :class:`ServiceUnavailable` - the server did not appear within the start-up timeout;
+* :class:`ServiceTimeout` - no answer within the call's timeout (also a ``TimeoutError``), or the
+  call was cancelled / the context shut down under it;
+* :class:`ServiceRefused` - the server answered ``success: false``; ``message`` is its reason, and by
+  the suite's contract nothing was changed by the refused call.
+
+A node that no executor spins raises ``RuntimeError`` at once instead of waiting for the timeout.
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+__all__ = ["ServiceError", "ServiceUnavailable", "ServiceTimeout", "ServiceRefused", "PendingCall", "call",
+           "wait_for_services", "ServiceClient"]
+
+
+class ServiceError(RuntimeError):
+    """A service call failed: unavailable, timed out, refused (success false) or interrupted."""
+
+
+class ServiceUnavailable(ServiceError):
+    """The service's server is not (yet) on the graph."""
+
+
+class ServiceTimeout(ServiceError, TimeoutError):
+    """No answer within the timeout, or the call was cancelled (shutting down)."""
+
+
+class ServiceRefused(ServiceError):
+    """The server answered success=false; ``message`` is its reason, ``service`` the service name."""
+
+    def __init__(self, service: str, message: str):
+        super().__init__(f"{service} refused: {message}")
+        self.service = service
+        self.message = message
+
+
+def _waker(event: threading.Event):
+    def wake(_future) -> None:
+        event.set()
+        # runs in the executor thread: give the GIL up once so the woken caller runs now instead
+        # of after the executor's next round of Python bookkeeping (up to the switch interval)
+        time.sleep(0)
+    return wake
+
+
+class PendingCall:
+    """A service call in flight, made from a thread that does not spin the node: ``done()`` polls,
+    ``result(timeout)`` waits for the answer."""
+
+    def __init__(self, client, request, what: str | None = None, *, refused: type = ServiceRefused):
+        self.client = client
+        self.name = what or client.srv_name
+        self.refused = refused
+        self._done = threading.Event()
+        self.future = client.call_async(request)
+        self.future.add_done_callback(_waker(self._done))
+
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    def result(self, timeout: float = 60.0, *, check: bool = True):
+        """The response. ServiceTimeout on timeout or cancellation, ServiceError when the call raised,
+        ServiceRefused (check) when the response says success false."""
+        name, future = self.name, self.future
+        if not self._done.wait(timeout):
+            self.client.remove_pending_request(future)
+            future.cancel()
+            raise ServiceTimeout(f"{name}: no answer within {timeout:g} s (is the node still running?)")
+        if future.cancelled():
+            raise ServiceTimeout(f"{name}: the call was cancelled (shutting down?)")
+        exc = future.exception()
+        if exc is not None:
+            raise ServiceError(f"{name}: {type(exc).__name__}: {exc}")
+        response = future.result()
+        if response is None:
+            raise ServiceTimeout(f"{name}: no response (context shut down?)")
+        if check and getattr(response, "success", True) is False:
+            raise self.refused(name, response.message)
+        return response
+
+
+def call(client, request, timeout: float = 60.0, *, what: str | None = None, check: bool = True):
+    """Blocking call from a thread that does not spin the node (an executor spins it elsewhere).
+
+    check: raise ServiceRefused when the response has ``success == False`` (with its message)."""
+    return PendingCall(client, request, what).result(timeout, check=check)
+
+
+def wait_for_services(clients: dict, timeout: float, hints: dict | None = None,
+                      stop: threading.Event | None = None) -> None:
+    """Wait until every client's service is available; ServiceUnavailable lists the missing ones.
+
+    clients: label -> rclpy client; hints: label -> how to start the server; stop: give up early."""
+    deadline = time.monotonic() + timeout
+    pending = dict(clients)
+    while pending:
+        for label, c in list(pending.items()):
+            if c.service_is_ready():
+                del pending[label]
+        if not pending:
+            return
+        if time.monotonic() > deadline or (stop is not None and stop.is_set()):
+            lines = [f"  {c.srv_name}" + (f"   (start it: {hints[label]})" if hints and label in hints else "")
+                     for label, c in pending.items()]
+            raise ServiceUnavailable(f"services not available after {timeout:g} s:\n" + "\n".join(lines) +
+                                     "\n(check node names, ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE, "
+                                     "or use bringup:=embedded)")
+        time.sleep(0.05)
+
+
+class ServiceClient:
+    """Base of a client of one server node: rclpy clients named ``<server>/<service>``.
+
+    node: an rclpy node spun by an executor in another thread (or use :meth:`standalone`).
+    server: the server node's name or fully qualified name ('/ns/name'); a relative name resolves
+    in the node's namespace. timeout: default seconds per call (each method also takes ``timeout=``).
+    Subclasses make their clients with :meth:`_make` and call with :meth:`_call`; a refusal raises
+    their ``REFUSED`` class (a ServiceRefused).
+    """
+
+    REFUSED: type = ServiceRefused
+    NODE_NAME = "service_client"   # standalone node names: <NODE_NAME>_<pid>_<n>
+
+    def __init__(self, node, server: str, *, timeout: float = 30.0, callback_group=None):
+        self.node = node
+        self.server = server.rstrip("/")
+        self.timeout = float(timeout)
+        self._group = callback_group
+        self._clients: list = []
+        self._owned = None   # (own context or None, executor, thread) of a standalone client
+
+    def _make(self, srv_type, name: str):
+        c = self.node.create_client(srv_type, f"{self.server}/{name}", callback_group=self._group)
+        self._clients.append(c)
+        return c
+
+    # --- construction -------------------------------------------------------------------------
+    @classmethod
+    def standalone(cls, server: str, context=None, *, node_name: str | None = None, timeout: float = 30.0,
+                   **kwargs):
+        """A client with its own node and a background executor thread; ``close()`` (or ``with``)
+        tears them down. context=None: a private rclpy context is created and shut down by
+        ``close()``; a given context must already be initialised and is left running."""
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+
+        own_context = context is None
+        if own_context:
+            context = rclpy.Context()
+            rclpy.init(context=context)
+        try:
+            name = node_name or f"{cls.NODE_NAME}_{os.getpid()}_{id(context) % 100000}"
+            # a pure client: no parameter services, so each executor round has less to wait on
+            node = Node(name, context=context, start_parameter_services=False)
+            executor = SingleThreadedExecutor(context=context)
+            executor.add_node(node)
+        except Exception:
+            if own_context:
+                context.try_shutdown()
+            raise
+        thread = threading.Thread(target=_spin, args=(executor,), name=f"{name}_executor", daemon=True)
+        thread.start()
+        client = cls(node, server, timeout=timeout, **kwargs)
+        client._owned = (context if own_context else None, executor, thread)
+        return client
+
+    def close(self) -> None:
+        """Destroy the rclpy clients; a standalone client also stops its executor thread, destroys
+        its node and shuts its private context down. Idempotent."""
+        owned, self._owned = self._owned, None
+        if owned is not None:
+            context, executor, thread = owned
+            executor.shutdown(timeout_sec=5.0)
+            thread.join(timeout=5.0)
+            self.node.destroy_node()
+            if context is not None:
+                context.try_shutdown()
+        else:
+            for c in self._clients:
+                self.node.destroy_client(c)
+        self._clients = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- plumbing -----------------------------------------------------------------------------
+    def wait_for_service(self, timeout: float | None = None) -> bool:
+        """True once every service of the server is available (False after `timeout` s)."""
+        deadline = time.monotonic() + (self.timeout if timeout is None else float(timeout))
+        for c in self._clients:
+            if not c.wait_for_service(timeout_sec=max(0.0, deadline - time.monotonic())):
+                return False
+        return True
+
+    def ready(self) -> bool:
+        """Every service of the server is available now (no waiting)."""
+        return all(c.service_is_ready() for c in self._clients)
+
+    def _check_spun(self) -> None:
+        if self.node.executor is None:
+            raise RuntimeError(f"{type(self).__name__}: node {self.node.get_name()!r} is not spun by any "
+                               f"executor; spin it in a background thread or use {type(self).__name__}.standalone()")
+
+    def _send(self, client, request) -> PendingCall:
+        self._check_spun()
+        return PendingCall(client, request, refused=self.REFUSED)
+
+    def _call(self, client, request, timeout: float | None = None, *, check: bool = True):
+        return self._send(client, request).result(self.timeout if timeout is None else float(timeout),
+                                                  check=check)
+
+
+def _spin(executor) -> None:
+    from rclpy.executors import ExternalShutdownException
+    try:
+        executor.spin()
+    except (ExternalShutdownException, KeyboardInterrupt):
+        pass
