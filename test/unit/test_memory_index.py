@@ -161,6 +161,7 @@ def test_exact_after_evictions():
 
 # ---------------------------------------------------------------- grid engine / hybrid
 import comper_memory.core.index as index_mod  # noqa: E402
+import comper_memory.core.index_grid as index_grid  # noqa: E402
 
 
 def _mem(engine, **kw):
@@ -195,7 +196,7 @@ def test_engines_match_reference_with_evictions(engine, delta):
 def test_grid_dense_cells_chunked_and_norm_growth(monkeypatch):
     """Many points in the same cells (huge delta, tiny candidate chunks) and keys whose norm
     later grows enough to force a coarser cell: still exact."""
-    monkeypatch.setattr(index_mod, "_PAIR_CHUNK", 7)
+    monkeypatch.setattr(index_grid, "_PAIR_CHUNK", 7)
     rng = np.random.default_rng(12)
     mem = _mem("grid", delta=2.0, max_key_abs=1e30)  # 1e7 values: beyond the default bound
     ref = Reference(2.0)

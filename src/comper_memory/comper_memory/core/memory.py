@@ -22,7 +22,7 @@ from comper_msgs_py.arrays import TransitionError, Transitions
 
 from . import storage as st
 from .config import MemoryConfig
-from .index import ExactIndex, GridIndex
+from .index import SimilarityIndex, make_index
 
 # Keys up to this many values use the sorted-cell grid engine, longer keys faiss IVF (see
 # docs/memory.md for the measurements behind the choice). Speed only, never results.
@@ -172,7 +172,7 @@ class CompactMemory:
     def _reset_state(self) -> None:
         c = self.config
         self.schema: dict | None = None   # obs_shape, obs_dtype, action_shape, action_dtype, key_size
-        self.index: ExactIndex | None = None
+        self.index: SimilarityIndex | None = None
         self.cap = 0
         self.a: dict[str, np.ndarray] = {}
         self.free: list[int] = []
@@ -202,24 +202,16 @@ class CompactMemory:
         self.schema = {"obs_shape": tuple(int(x) for x in t.obs_shape), "obs_dtype": t.states.dtype.str,
                        "action_shape": () if discrete else (int(t.actions.shape[1]),),
                        "action_dtype": "<i8" if discrete else "<f4", "key_size": key}
-        c = self.config
-        engine = self.index_engine or {"grid": "grid", "faiss_ivf": "ivf"}[c.index_engine]
-        if engine == "grid":
-            self.index = GridIndex(key, c.delta, keys_of=self._index_keys, alive=self._index_alive,
-                                   live_ids=lambda: self.ids_sorted,
-                                   grid_dims=min(3, c.index_projection_dim),
-                                   filter_dims=c.index_projection_dim, min_train=c.index_min_train,
-                                   rebuild_growth=c.index_rebuild_growth, seed=c.index_seed)
-        else:
-            self.index = ExactIndex(key, c.delta, projection_dim=c.index_projection_dim,
-                                    min_train=c.index_min_train, list_size=c.index_list_size,
-                                    max_lists=c.index_max_lists, rebuild_growth=c.index_rebuild_growth,
-                                    seed=c.index_seed)
+        self.index = make_index(self.config, key, self, self.index_engine)
 
-    def _index_keys(self, ids: np.ndarray) -> np.ndarray:
+    # the index's KeySource
+    def live_ids(self) -> np.ndarray:
+        return self.ids_sorted
+
+    def keys_of(self, ids: np.ndarray) -> np.ndarray:
         return self._keys_of_slots(self._slots_of(ids))
 
-    def _index_alive(self, ids: np.ndarray) -> np.ndarray:
+    def alive(self, ids: np.ndarray) -> np.ndarray:
         return self._slots_of(ids) >= 0
 
     def _field_spec(self) -> dict[str, tuple[tuple, np.dtype, object]]:
@@ -387,7 +379,7 @@ class CompactMemory:
             if self.schema is None:
                 self._init_schema(clean)
             y = self.index.project(keys)
-            res = self.index.resolve(keys, y, lambda ids: self._keys_of_slots(self._slots_of(ids)))
+            res = self.index.resolve(keys, y)
             if self._wal is not None:
                 self._wal.append(self.wal_sequence + 1, st.WAL_STORE, _t_to_arrays(clean))
             self.wal_sequence += 1
@@ -765,14 +757,7 @@ class CompactMemory:
         self.n_live = n
         self.tm.add(self._slots_of(arrays["tm_order"]))
         self.rtm.add(self._slots_of(arrays["rtm_order"]))
-        if isinstance(self.index, GridIndex):
-            self.index.rebuild(refit=True)
-            return
-        step = max(1, (1 << 24) // max(1, sch["key_size"]))
-        for s in range(0, n, step):
-            sl = slots[s:s + step]
-            self.index._add_faiss(ids[s:s + step], self.index.project(self._keys_of_slots(sl)))
-        self.index.maybe_rebuild(force=n >= self.index.min_train)
+        self.index.reindex()
 
     def export_state(self) -> tuple[dict[str, np.ndarray], dict]:
         """(arrays, meta) exactly as a snapshot would hold them (live identities ordered by id)."""
@@ -930,7 +915,7 @@ class CompactMemory:
             if self.schema is None:
                 self._init_schema(clean)
             y = self.index.project(keys)
-            res = self.index.resolve(keys, y, lambda ids: self._keys_of_slots(self._slots_of(ids)))
+            res = self.index.resolve(keys, y)
             self.wal_sequence = seq
             self._apply_store(clean, y, res)
         elif kind == st.WAL_COMMIT:
