@@ -1,4 +1,4 @@
-"""Durability: write-ahead log and checksummed snapshots (no pickles anywhere).
+"""File formats of the memory's durability: write-ahead log and checksummed snapshots (no pickles).
 
 WAL file: a sequence of records ``MAGIC | u32 payload length | u32 crc32(payload) | payload``
 with payload ``u64 sequence | u8 kind | u32 header length | JSON header | raw array bytes``.
@@ -30,7 +30,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
 import struct
 import zlib
 from dataclasses import dataclass, field
@@ -272,7 +271,7 @@ def is_snapshot_dir(path: str) -> bool:
     return isinstance(m, dict) and "state_sha256" in m and "format" in m
 
 
-def _remove_snapshot_dir(path: str) -> None:
+def remove_snapshot_dir(path: str) -> None:
     """Delete a directory only if it holds nothing but snapshot files (never anything else)."""
     if os.path.islink(path) or not os.path.isdir(path):
         return
@@ -297,7 +296,7 @@ def write_snapshot(path: str, arrays: dict[str, np.ndarray], meta: dict) -> None
     if os.path.lexists(tmp):
         if not os.path.isdir(tmp) or os.path.islink(tmp) or not set(os.listdir(tmp)) <= _SNAPSHOT_FILES:
             raise SnapshotError(f"snapshot: {tmp!r} exists and is not a leftover of a snapshot write")
-        _remove_snapshot_dir(tmp)
+        remove_snapshot_dir(tmp)
     os.makedirs(tmp)
     npz = os.path.join(tmp, "state.npz")
     with open(npz, "wb") as f:
@@ -317,14 +316,14 @@ def write_snapshot(path: str, arrays: dict[str, np.ndarray], meta: dict) -> None
     if os.path.lexists(path):
         old = f"{path}.old-{os.getpid()}"
         if os.path.lexists(old):
-            _remove_snapshot_dir(old)
+            remove_snapshot_dir(old)
         if os.path.lexists(old):
             raise SnapshotError(f"snapshot: {old!r} exists and is not a snapshot directory")
         os.rename(path, old)
     os.rename(tmp, path)
     _fsync_dir(parent)
     if old:
-        _remove_snapshot_dir(old)
+        remove_snapshot_dir(old)
 
 
 def read_snapshot(path: str) -> tuple[dict[str, np.ndarray], dict]:
