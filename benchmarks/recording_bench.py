@@ -35,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))   # scaffolding: synthetic runs
+
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("ROS_DOMAIN_ID", str(40 + os.getpid() % 50))
 
@@ -91,7 +93,7 @@ def proc_cpu_s(pid: int) -> float:
 
 def publisher_loop(node, topics, steps: int, work_n: int, seed: int = 0) -> dict:
     """Agent-like loop: returns steps/s and messages published."""
-    from comper_agent.offline import synthetic_run
+    from scaffolding import synthetic_run
     t, summ = synthetic_run(steps, seed=seed, run_id="bench")
     a = np.random.default_rng(1).standard_normal((128, 128)).astype(np.float32)
     ids = t.episode_ids.astype(np.int64)
@@ -121,7 +123,7 @@ def overhead(args) -> dict:
     import rclpy
     from rclpy.node import Node
 
-    from comper_agent.recorder_node import EpisodeTopics
+    from scaffolding import EpisodeTopics
 
     rclpy.init()
     node = Node("recording_bench_agent")
@@ -245,8 +247,8 @@ def overhead_record_param(args) -> dict:
 
 def evaluate_time(args) -> dict:
     from comper_agent.evaluate import evaluate
-    from comper_agent.offline import synthetic_run
-    from comper_agent.recording import write_run_bag
+    from scaffolding import synthetic_run
+    from scaffolding import write_run_bag
     tmp = Path(tempfile.mkdtemp(prefix="evalbench_"))
     try:
         t, summ = synthetic_run(args.eval_steps, seed=0, run_id="bench50k")

@@ -19,7 +19,7 @@ pytestmark = pytest.mark.timeout(120)
 
 
 def _publisher(node, prefix="/comcact_node"):
-    from comper_agent.recorder_node import EpisodeTopics
+    from scaffolding import EpisodeTopics
     return EpisodeTopics(node, prefix)
 
 
@@ -67,7 +67,7 @@ def _run(*args, timeout=60):
 
 
 def test_records_and_evaluate_reproduces_published_returns(launch, ros_node, tmp_path):
-    from comper_agent.offline import synthetic_run
+    from scaffolding import synthetic_run
     from comper_msgs.msg import EpisodeSummary, MemoryStats
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     rec = launch("comper_agent", "recorder_node", "--ros-args", "-p", f"output_dir:={tmp_path}/runs",
@@ -110,7 +110,8 @@ def test_records_and_evaluate_reproduces_published_returns(launch, ros_node, tmp
 
 
 def test_sigkill_leaves_a_readable_bag(launch, ros_node, tmp_path):
-    from comper_agent.offline import read_runs, synthetic_run
+    from comper_agent.offline import read_runs
+    from scaffolding import synthetic_run
     rec = launch("comper_agent", "recorder_node", "--ros-args", "-p", f"output_dir:={tmp_path}/runs",
                  "-p", "run_id:=killed", "-p", "max_file_duration_s:=1.0")
     topics = _publisher(ros_node)
@@ -133,7 +134,8 @@ def test_sigkill_leaves_a_readable_bag(launch, ros_node, tmp_path):
 
 
 def test_sqlite3_storage(launch, ros_node, tmp_path):
-    from comper_agent.offline import read_runs, synthetic_run
+    from comper_agent.offline import read_runs
+    from scaffolding import synthetic_run
     rec = launch("comper_agent", "recorder_node", "--ros-args", "-p", f"output_dir:={tmp_path}",
                  "-p", "run_id:=sq", "-p", "storage:=sqlite3")
     topics = _publisher(ros_node)
@@ -149,8 +151,8 @@ def test_sqlite3_storage(launch, ros_node, tmp_path):
 
 
 def test_bag_to_memory_and_export(launch, ros_node, tmp_path):
-    from comper_agent.offline import synthetic_run
-    from comper_agent.recording import write_run_bag
+    from scaffolding import synthetic_run
+    from scaffolding import write_run_bag
     from comper_msgs.srv import GetStats
     t, summ = synthetic_run(2500, seed=10, run_id="m1")
     bag = write_run_bag(tmp_path / "bag", t, summ)

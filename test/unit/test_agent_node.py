@@ -10,6 +10,7 @@ import time
 
 import pytest
 
+from comper_agent.agent_main import help_text
 from comper_agent.agent_node import AgentRunConfig, episode_over, redefault
 from comper_agent.comcact_node import ComcactNode, ComcactNodeConfig
 from comper_agent.comper_node import ComperNode, ComperNodeConfig
@@ -75,7 +76,7 @@ def test_episode_over_rules():
 
 @pytest.mark.parametrize("node_cls, cfg_cls", [(ComcactNode, ComcactNodeConfig), (ComperNode, ComperNodeConfig)])
 def test_help_lists_every_node_and_learner_parameter(node_cls, cfg_cls):
-    text = node_cls.help_text()
+    text = help_text(node_cls)
     for f in dataclasses.fields(cfg_cls):
         assert f"\n  {f.name} (default " in text
     assert "\n  num_threads (default 1)" in text and "\n  variant " not in text
@@ -99,7 +100,7 @@ def test_a_node_that_cannot_start_says_why_in_one_line_and_exits_1(module, args,
 def test_recorder_child_exits_when_its_parent_died_before_prctl():
     """PR_SET_PDEATHSIG's race: a parent that died between fork and prctl sends no signal, so the
     child must notice (parent pid changed) and exit instead of running on unowned."""
-    from comper_agent.agent_node import _die_with_parent
+    from comper_agent.recording_link import _die_with_parent
     cmd = [sys.executable, "-c", "import time; time.sleep(30)"]
     orphan = subprocess.Popen(cmd, preexec_fn=functools.partial(_die_with_parent, os.getpid() + 10_000_000))
     assert orphan.wait(timeout=10) == 1        # "parent" pid differs: exits before exec
@@ -149,3 +150,4 @@ def test_graceful_node_ignores_repeated_signals_and_a_stuck_close_times_out():
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+

@@ -3,25 +3,35 @@ the DQN baseline's frame-deduplicating replay (exact reconstruction across episo
 import numpy as np
 import pytest
 
-from comper_agent.comper_node import FrameReplay, protocol_summary
+from comper_agent.core.protocol import protocol_summary
+from comper_agent.core.replay import FrameReplay
 
 
-def test_protocol_summary_last_ten_and_terciles():
-    r = list(range(30))                     # 30 episodes: last 10, terciles end at 10, 20, 30, last 5 each
-    s = protocol_summary(r)
+def test_protocol_summary_last_ten_and_terciles_of_the_frame_budget():
+    r = list(range(30))                     # 30 episodes of 100 frames: terciles end at 1,000, 2,000, 3,000
+    s = protocol_summary(r, np.cumsum([100] * 30), 3000)
     assert s["episodes"] == 30 and s["last_k"] == 10 and s["last_mean"] == pytest.approx(np.mean(r[-10:]))
     assert [t["end_episode"] for t in s["terciles"]] == [10, 20, 30]
     assert [t["mean"] for t in s["terciles"]] == pytest.approx([7.0, 17.0, 27.0])
     assert all(t["n"] == 5 for t in s["terciles"])
 
 
+def test_terciles_follow_frames_not_episode_counts():
+    """Section 5.3: checkpoints at each third of the total frames. An agent whose episodes get longer
+    ends fewer episodes in the later thirds; counting episodes would move the checkpoints."""
+    lengths = [50] * 20 + [200] * 10        # 1,000 frames in 20 episodes, then 2,000 in 10
+    s = protocol_summary(list(range(30)), np.cumsum(lengths), 3000)
+    assert [t["end_episode"] for t in s["terciles"]] == [20, 25, 30]
+    assert [t["mean"] for t in s["terciles"]] == pytest.approx([17.0, 22.0, 27.0])
+
+
 def test_protocol_summary_few_episodes_uses_three():
     r = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]   # < 25 episodes: last 3, terciles of the last 3
-    s = protocol_summary(r)
+    s = protocol_summary(r, np.cumsum([10] * 7), 70)
     assert s["last_k"] == 3 and s["last_mean"] == pytest.approx(6.0) and s["tercile_k"] == 3
-    assert [t["end_episode"] for t in s["terciles"]] == [2, 5, 7]
-    assert [t["mean"] for t in s["terciles"]] == pytest.approx([1.5, 4.0, 6.0])
-    assert np.isnan(protocol_summary([])["last_mean"])
+    assert [t["end_episode"] for t in s["terciles"]] == [2, 4, 7]
+    assert [t["mean"] for t in s["terciles"]] == pytest.approx([1.5, 3.0, 6.0])
+    assert np.isnan(protocol_summary([], [])["last_mean"])
 
 
 def _episode(rng, length, stack):

@@ -8,8 +8,9 @@ import shutil
 import pytest
 
 from comper_agent import evaluate
-from comper_agent.offline import synthetic_run
-from comper_agent.recording import ChunkedBagWriter, write_run_bag
+from scaffolding import synthetic_run
+from comper_agent.recording import ChunkedBagWriter
+from scaffolding import write_run_bag
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,8 @@ import pytest
 
 from comper_agent import offline
 from comper_agent.offline import (discounted_returns, final_performance, reconstruct_episodes,
-                                  synthetic_run, tercile_summaries)
+                                  tercile_summaries)
+from scaffolding import synthetic_run
 from comper_msgs_py.arrays import Transitions
 
 

@@ -131,7 +131,7 @@ def test_rclpy_serialized_bytes_decode_with_bag_types(tmp_path):
     ser = pytest.importorskip("rclpy.serialization")
     from comper_msgs.msg import EpisodeSummary, TransitionBatch
     from comper_msgs_py.convert import transitions_to_batch
-    from comper_agent.offline import synthetic_run
+    from scaffolding import synthetic_run
     t, summaries = synthetic_run(300, seed=1)
     m = EpisodeSummary(run_id="x", env_id="Hopper-v4", source="train", episode_id=3, episode_return=summaries[0]["episode_return"])
     bag = tmp_path / "bag"

@@ -41,62 +41,19 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.convert import seq_to_numpy
-from comper_msgs_py.params import param
 
-from .agent_node import SUMMARY_QOS, AgentNode, AgentRunConfig, episode_over, run_main
+from .agent_run import next_due
+from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
+from .node_config import ComcactNodeConfig
 from .core.config import ComcactConfig, DDPGConfig
+from .core.memory_schedule import Row, reduce_due, rows_to_transitions, updates_before_reduce
 
 __all__ = ["ComcactNode", "ComcactNodeConfig", "main", "SUMMARY_QOS"]
-
-
-@dataclass(frozen=True)
-class ComcactNodeConfig(AgentRunConfig):
-    """comcact_node's own parameters (the learner's hyper-parameters are ComcactConfig / DDPGConfig)."""
-
-    algorithm: str = param(
-        "comcact", "comcact (Algorithm 8: memory + QT step) or ddpg (baseline: plain uniform replay in this "
-        "process, no QT step, no memory / QT trainer nodes)", choices=("comcact", "ddpg"))
-    env_id: str = param(
-        "InvertedPendulum-v4", "gymnasium task (continuous actions): InvertedPendulum-v4, Hopper-v4, "
-        "Walker2d-v4, HalfCheetah-v4, InvertedDoublePendulum-v4, Pendulum-v1, ... (embedded: given to "
-        "the sim node; external: must match the running sim node)")
-    total_steps: int = param(50_000, "agent (environment) steps of the run", thesis="50,000 (chapter 6)",
-                             minimum=1)
-    warmup_steps: int = param(
-        0, "steps of uniformly random actions before the policy acts (sent in batches with step_many; no "
-        "updates meanwhile); 0 = act with mu + noise from the first step",
-        thesis="not given (Algorithm 8 acts with the policy from step 1)", minimum=0)
-    store_every: int = param(
-        10, "agent steps per memory store call (labels are computed when stored; an episode end and every "
-        "reduction flush first, so RTM and the sampled batches are the same as with 1). ddpg: the replay "
-        "gets the transitions in the same blocks (an update may not yet draw the newest <= 9 of them)",
-        thesis="every step",
-        minimum=1, deviation="10: the labels of up to 9 transitions are computed a few updates later; one store "
-        "call per 10 steps measured 31.0 -> 38.5 steps/s on Hopper-v4 (docs/comcact.md); 1 = the thesis")
-    reduce_every: int = param(
-        10, "DDPG updates between reductions (a reduction also runs whenever RTM is empty)",
-        thesis="every iteration (1; Algorithm 8 line 27-28)", minimum=1,
-        deviation="10, chosen by measurement (docs/comcact.md); -p reduce_every:=1 is the thesis's cadence")
-    reduce_batch: int = param(50_000, "most sets popped from TM per reduction", thesis="50,000 (appendix B)",
-                              minimum=0)
-    qt_epochs: int = param(
-        0, "QT training passes per reduction; 0 = the QT trainer's qt_epochs parameter (default 1, Keras "
-        "fit default)", thesis="not given", minimum=0)
-    qt_targets: str = param(
-        "local", "where QT(tau) for the extra critic step comes from: local = predict with the latest "
-        "QTModel received (Algorithm 8 lines 29-30); rtm = the prediction the RTM stored at the entry's "
-        "last reduction (returned by sample)", choices=("local", "rtm"))
-    eval_every: int = param(5_000, "steps between evaluations (0 = never)", thesis="5,000 (chapter 6)",
-                            minimum=0)
-    checkpoint_every: int = param(
-        0, "steps between checkpoints (0 = at every evaluation point); a final one is always written",
-        minimum=0)
 
 
 class ComcactNode(AgentNode):
@@ -164,14 +121,14 @@ class ComcactNode(AgentNode):
         what = ("COMCACT (memory + QT step)" if self.comcact else "DDPG baseline (uniform replay)")
         return (f"{what} on {p.env_id} (obs {list(self.obs_shape)}, actions {self.action_dim} in "
                 f"[{self.low.min():g}, {self.high.max():g}]), {p.bringup} bring-up, "
-                f"{self._resume_text()} to {p.total_steps} steps; "
+                f"{'resuming at step ' + str(self.step) if self.step else 'fresh run'} to {p.total_steps} steps; "
                 f"evaluation every {p.eval_every} steps x {p.eval_episodes} episodes"
                 + (f"; reduce every {p.reduce_every} updates, reduce_batch {p.reduce_batch}" if self.comcact else ""))
 
     def _before_loop(self) -> None:
         p = self.p
-        self.next_eval = self._next_due(p.eval_every)
-        self._schedule_checkpoints(p.checkpoint_every or p.eval_every)
+        self.next_eval = next_due(self.step, p.eval_every)
+        self.outputs.schedule_checkpoints(p.checkpoint_every or p.eval_every, self.step)
         if p.eval_every > 0 and self.step == 0:
             self.evaluate()       # the untrained policy: the curve's first point
 
@@ -201,8 +158,7 @@ class ComcactNode(AgentNode):
     def _progress_line(self, line: str) -> None:
         extra = ""
         if self.comcact:
-            qv = self.qt_local.version if self.qt_local is not None else 0
-            extra = f" | RTM {self.rtm_size} | QT v{qv}"
+            extra = f" | RTM {self.rtm_size} | QT v{self.mem.qt_version}"
         self.log.info(line + extra)
         self.metrics.write("progress", step=self.step, steps_per_s=self.progress.rate, episodes=self.episodes,
                            wall_time_s=self.wall_time(), rtm_size=self.rtm_size, **{
@@ -223,9 +179,9 @@ class ComcactNode(AgentNode):
         with self.ptimers("learner"):
             a = self.learner.act(obs, explore=True)
         r, nxt = self._sim_step(a)
-        self.pending.append((obs, a, float(r.reward), nxt, bool(r.terminated), bool(r.truncated), self.step))
+        self.pending.append(Row(obs, a, r.reward, nxt, r.terminated, r.truncated, self.step))
         self.step += 1
-        over = self._episode_over(r.terminated, r.truncated)
+        over = episode_over(self.episode_rule, r.terminated, r.truncated)
         if len(self.pending) >= self.p.store_every or over:
             self._flush()
         if self.stored >= max(self.cfg.learning_starts, 2):
@@ -273,30 +229,23 @@ class ComcactNode(AgentNode):
             with self.ptimers("learner"):
                 t.value_labels = self.learner.value_labels(t)
             with self.ptimers("memory"):
-                self.memory.store(t)
+                self.mem.store(t)
         self.stored += len(t)
         self.ep_parts.append(t)
 
     def _flush(self) -> None:
         if self.pending:
-            cols = list(zip(*self.pending))
-            self.pending = []
-            n = len(cols[0])
-            t = Transitions(states=np.stack(cols[0]), actions=np.stack(cols[1]).astype(np.float32),
-                            rewards=np.asarray(cols[2], np.float32), next_states=np.stack(cols[3]),
-                            terminated=np.asarray(cols[4], bool), truncated=np.asarray(cols[5], bool),
-                            episode_ids=np.full(n, self.episodes, np.uint64),
-                            steps=np.asarray(cols[6], np.uint64), run_id=self.run_id)
-            self._store(t)
+            rows, self.pending = self.pending, []
+            self._store(rows_to_transitions(rows, self.episodes, self.run_id))
 
     def _sample(self) -> Transitions | None:
-        """The next update batch: from RTM (prefetched up to the next reduction, AgentNode._next_batch),
+        """The next update batch: from RTM (prefetched up to the next reduction, MemoryLink.next_batch),
         from TM while RTM is empty (Algorithm 8 lines 14-17)."""
         k = self.cfg.batch_size
         source = "rtm"
-        if self.rtm_size <= 1 and not self.prefetched:
+        if self.rtm_size <= 1 and not self.mem.prefetched:
             with self.ptimers("memory"):
-                stats = self._get_stats()
+                stats = self.mem.stats()
             if self.rtm_size <= 1:
                 source, avail = "tm", stats["tm_sets"]
             else:
@@ -306,41 +255,40 @@ class ComcactNode(AgentNode):
         k = min(k, avail)
         if k < 2:
             return None
-        got = self._next_batch(k, source, self.p.reduce_every - self.since_reduce)
+        got = self.mem.next_batch(k, source, updates_before_reduce(self.p.reduce_every - self.since_reduce))
         if got is None:      # RTM shrank (evictions): refresh its size next time
-            self.rtm_size = 0
+            self.mem.rtm_size = 0
             return None
         return got[0]
 
     def _reduce(self) -> None:
         self._flush()               # every stored transition takes part in the reduction
         self.since_reduce = 0
-        if self._reduce_overlapped():   # reduce_overlap: learning goes on; _reduce_collect finishes it
+        if self.mem.start_overlapped():   # reduce_overlap: learning goes on; mem.collect finishes it
             return
         with self.ptimers("qt"):
-            r = self._reduce_call()
+            r = self.mem.reduce()
             if self.p.qt_targets == "local" and r.qt_version > 0:
-                self._wait_qt_model(r.qt_version)
+                self.mem.wait_qt_model(r.qt_version)
 
     # ------------------------------------------------------------------------------ learning
     def _train_step(self) -> None:
         if self.comcact:
-            self._reduce_collect(wait=False)      # reduce_overlap: a reduction that has answered
+            self.mem.collect(wait=False)      # reduce_overlap: a reduction that has answered
             batch = self._sample()
             if batch is None:
                 return
             with self.ptimers("learner"):
                 self.last_update = self.learner.update(batch)
             self.since_reduce += 1
-            if self.since_reduce >= self.p.reduce_every or self.rtm_size == 0:
+            if reduce_due(self.since_reduce, self.p.reduce_every, self.rtm_size):
                 self._reduce()
             targets = None
             if self.p.qt_targets == "rtm":
                 if self.rtm_size > 0 and batch.value_labels.size == len(batch):
                     targets = batch.value_labels
             else:
-                with self.qt_cond:
-                    qt = self.qt_local
+                qt = self.mem.qt_model()
                 if qt is not None:
                     from comper_memory.core import transition_keys
                     with self.ptimers("qt_predict"):

@@ -51,197 +51,27 @@ from __future__ import annotations
 import json
 import math
 import sys
-from dataclasses import dataclass
 
 import numpy as np
 
 from comper_msgs_py.arrays import Transitions
-from comper_msgs_py.params import param
 
 from . import run_io
-from .agent_node import SUMMARY_QOS, AgentNode, AgentRunConfig, redefault, run_main
+from .agent_run import next_due
+from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
+from .node_config import COMPER_ALGORITHMS, ComperNodeConfig
+from .core.memory_schedule import (Row, reduce_due, rows_to_transitions, sets_touched_per_reduction,
+                                   updates_before_reduce)
+from .core.protocol import protocol_summary
+from .core.replay import FrameReplay
 from .core.config import COMPER_PROFILES, ComperConfig, DQNConfig, resolve_profile
 
 __all__ = ["ComperNode", "ComperNodeConfig", "FrameReplay", "protocol_summary", "main", "SUMMARY_QOS",
            "TRANSITIONS_QOS", "ALGORITHMS"]
 
-ALGORITHMS = ("comper", "comper_f", "comper_m", "dqn")
+ALGORITHMS = COMPER_ALGORITHMS
 
 TRANSITIONS_QOS = SUMMARY_QOS
-
-
-@dataclass(frozen=True)
-class ComperNodeConfig(AgentRunConfig):
-    """comper_node's own parameters (the learner's hyper-parameters are ComperConfig / DQNConfig)."""
-
-    algorithm: str = param(
-        "comper", "comper (Algorithm 7: RTM sampling, QT target) | comper_f (RTM sampling, DQN loss with a "
-        "target network; chapter 7) | comper_m (QT target, sampling from TM; chapter 7) | dqn (baseline, "
-        "Table 35: in-process replay, target network, no memory / QT nodes)", choices=ALGORITHMS)
-    env_id: str = param(
-        "ALE/Freeway-v5", "task with discrete actions: an ALE game (ALE/<Game>-v5: Freeway, Asterix, Seaquest, "
-        "...) or a gymnasium task with vector observations (CartPole-v1, Acrobot-v1, MountainCar-v0); "
-        "embedded: given to the sim node; external: must match the running sim node")
-    profile: str = param(
-        "auto", "named set of learner defaults (core/config.py COMPER_PROFILES, each value with its source; "
-        "-p name:=value still wins): thesis = Algorithm 7 and Tables 32-35; data_efficient = short Atari "
-        "budgets (Adam, one update per step, 4 frames, double DQN; Dopamine's atari_100k DER settings); "
-        "classic_control = vector tasks; auto = thesis for ALE games, classic_control otherwise",
-        thesis="thesis (the only protocol the thesis runs is Atari)",
-        choices=("auto", "thesis", "data_efficient", "classic_control"))
-    eval_every: int = param(
-        -1, "agent steps between evaluations (eval_episodes greedy episodes on a separate environment; 0 = "
-        "never); -1 = never for ALE games (the protocol reports training episodes), 5,000 for vector tasks",
-        thesis="none for Atari (chapter 5 reports training episodes)", minimum=-1)
-    eval_epsilon: float = param(0.0, "epsilon of the evaluated policy (0 = greedy; Dopamine evaluates Atari "
-                                     "with 0.001)", minimum=0.0, maximum=1.0)
-    progress_period_s: float = redefault(AgentRunConfig, "progress_period_s", 10.0)
-    total_frames: int = param(
-        100_000, "frame budget counting skipped frames (a vector task has one frame per step); the episode in "
-        "progress when it is reached finishes", thesis="100,000 (chapter 5)", minimum=1)
-    max_steps: int = param(0, "if > 0, also stop after this many agent steps, even mid-episode (tests, "
-                              "smoke runs)", minimum=0)
-    reduce_every: int = param(100, "agent steps between reductions + QT training (and whenever RTM is "
-                                   "empty)", thesis="100 (Table 34, UTF)", minimum=1)
-    reduce_batch: int = param(1_000, "most similar-transition sets per reduction", thesis="1,000 (Table 34)",
-                              minimum=1)
-    qt_epochs: int = param(0, "QT passes per reduction; 0 = the QT trainer's qt_epochs (1)", minimum=0)
-    qt_targets: str = param(
-        "local", "QT(tau) for the loss: local = predicted by the latest QTModel received (Algorithm 7 line "
-        "16); rtm = the prediction stored in RTM at the entry's last reduction (comper only; comper_m "
-        "samples TM and always predicts locally)", choices=("local", "rtm"))
-    qt_wait_s: float = redefault(AgentRunConfig, "qt_wait_s", 5.0)
-    reducer: str = param(
-        "auto", "who reduces TM into RTM: qt_trainer (<qt_trainer_node>/reduce, trains QT) | memory "
-        "(<memory_node>/reduce, newest label as prediction, no QT) | auto = memory for comper_f (it does "
-        "not use QT), qt_trainer otherwise", choices=("auto", "qt_trainer", "memory"))
-    restore_batch: bool = param(True, "re-store each updated batch with fresh labels (thesis 4.1.1; "
-                                      "method.md 4)")
-    store_every: int = param(4, "before learning starts / between updates: steps per store call (an update "
-                                "and an episode end always flush)", minimum=1)
-    stats_every: int = param(
-        1_000, "agent steps between memory statistics records (identities, TM, RTM, set sizes) in "
-        "metrics.jsonl (0 = only at the end)", minimum=0)
-    checkpoint_every: int = param(5_000, "agent steps between checkpoints (0 = only the final one)", minimum=0)
-
-
-# ---------------------------------------------------------------------------------- protocol
-def protocol_summary(returns: list[float], *, last: int = 10, last_few: int = 3, tercile_last: int = 5,
-                     few_episodes: int = 25) -> dict:
-    """The thesis's Atari figures for one run (chapter 5.3, Tables 23/25; method.md 5).
-
-    last_mean: mean of the last `last` (10) training episodes, or the last `last_few` (3) when the
-    run has fewer than `few_episodes` (25) episodes. terciles: the episodes are split into three
-    equal parts by count; for each part, the mean of the last `tercile_last` (5, or 3 when fewer
-    than 25 episodes) episodes preceding its end (episode boundaries round(j N / 3))."""
-    r = [float(x) for x in returns]
-    n = len(r)
-    few = n < few_episodes
-    k = last_few if few else last
-    kt = last_few if few else tercile_last
-    out = {"episodes": n, "last_k": min(k, n), "last_mean": float(np.mean(r[-k:])) if n else float("nan"),
-           "last_std": float(np.std(r[-k:])) if n else float("nan"), "tercile_k": kt, "terciles": []}
-    for j in (1, 2, 3):
-        end = int(round(j * n / 3.0))
-        part = r[max(0, end - kt):end]
-        out["terciles"].append({"end_episode": end, "n": len(part),
-                                "mean": float(np.mean(part)) if part else float("nan"),
-                                "std": float(np.std(part)) if part else float("nan")})
-    return out
-
-
-# ---------------------------------------------------------------------------------- DQN replay
-class FrameReplay:
-    """Uniform replay for stacked uint8 frames that stores each frame once (DQN baseline).
-
-    A transition keeps the ids of its state's and next state's frames; within an episode the next
-    state's first C-1 frames are the state's last C-1 frames (the sim stacks oldest first), so each
-    step adds one frame; an episode's first transition adds its state's C frames. Frame ids are
-    global counters into a ring of `capacity + frame_margin` frames; a transition whose oldest frame
-    was overwritten is no longer drawn. Reconstruction is exact (checked in the unit tests)."""
-
-    def __init__(self, capacity: int, frame_shape: tuple, stack: int, seed: int | None = None,
-                 frame_margin: int | None = None):
-        self.capacity = int(capacity)
-        self.stack = int(stack)
-        self.frame_shape = tuple(frame_shape)          # one frame: (84, 84)
-        self.n_frames = self.capacity + (frame_margin if frame_margin is not None
-                                         else max(64, self.capacity // 8))
-        self.frames = np.zeros((self.n_frames, *self.frame_shape), np.uint8)
-        self.frames_written = 0
-        c = self.capacity
-        self.s_ids = np.zeros((c, self.stack), np.int64)
-        self.ns_ids = np.zeros((c, self.stack), np.int64)
-        self.actions = np.zeros(c, np.float32)
-        self.rewards = np.zeros(c, np.float32)
-        self.terminated = np.zeros(c, bool)
-        self.truncated = np.zeros(c, bool)
-        self.pos = 0
-        self.size = 0
-        self._last_ns: np.ndarray | None = None         # frame ids of the previous transition's s'
-        self.rng = np.random.default_rng(seed)
-
-    def __len__(self) -> int:
-        return self.size
-
-    @property
-    def nbytes(self) -> int:
-        return int(self.frames.nbytes + self.s_ids.nbytes + self.ns_ids.nbytes)
-
-    def _push(self, frame: np.ndarray) -> int:
-        i = self.frames_written
-        self.frames[i % self.n_frames] = frame
-        self.frames_written += 1
-        return i
-
-    def _stacked(self, obs: np.ndarray) -> np.ndarray:
-        return obs.reshape(self.stack, *self.frame_shape)
-
-    def add(self, state: np.ndarray, action: int, reward: float, next_state: np.ndarray,
-            terminated: bool, truncated: bool, new_episode: bool) -> None:
-        s = self._stacked(state)
-        ns = self._stacked(next_state)
-        if new_episode or self._last_ns is None:
-            s_ids = np.array([self._push(f) for f in s], np.int64)
-        else:
-            s_ids = self._last_ns
-        ns_ids = np.concatenate([s_ids[1:], [self._push(ns[-1])]]) if self.stack > 1 \
-            else np.array([self._push(ns[-1])], np.int64)
-        p = self.pos
-        self.s_ids[p], self.ns_ids[p] = s_ids, ns_ids
-        self.actions[p], self.rewards[p] = action, reward
-        self.terminated[p], self.truncated[p] = terminated, truncated
-        self._last_ns = ns_ids
-        self.pos = (p + 1) % self.capacity
-        self.size = min(self.capacity, self.size + 1)
-
-    def end_episode(self) -> None:
-        self._last_ns = None
-
-    def _valid(self, idx: np.ndarray) -> np.ndarray:
-        return self.s_ids[idx].min(axis=1) >= self.frames_written - self.n_frames
-
-    def sample(self, k: int) -> Transitions:
-        """k transitions drawn uniformly (with replacement) among those whose frames are all kept."""
-        if self.size == 0:
-            raise ValueError("cannot sample from an empty replay buffer")
-        idx = self.rng.integers(0, self.size, size=int(k))
-        for _ in range(100):
-            bad = ~self._valid(idx)
-            if not bad.any():
-                break
-            idx[bad] = self.rng.integers(0, self.size, size=int(bad.sum()))
-        return self.take(idx)
-
-    def take(self, idx) -> Transitions:
-        idx = np.asarray(idx)
-        squeeze = self.stack == 1
-        st = self.frames[self.s_ids[idx] % self.n_frames]
-        nst = self.frames[self.ns_ids[idx] % self.n_frames]
-        if squeeze:
-            st, nst = st[:, 0], nst[:, 0]
-        return Transitions(states=st, actions=self.actions[idx], rewards=self.rewards[idx], next_states=nst,
-                           terminated=self.terminated[idx], truncated=self.truncated[idx])
 
 
 # ---------------------------------------------------------------------------------- the node
@@ -264,8 +94,10 @@ class ComperNode(AgentNode):
     def __init__(self, node_name: str = "comper_node", **node_kwargs):
         super().__init__(node_name, **node_kwargs)
 
-    def _profile_overrides(self) -> dict:
-        self.profile = resolve_profile(self.p.profile, self.p.env_id)
+    def _profile_overrides(self, values: dict) -> dict:
+        if "profile" not in values:
+            return {}
+        self.profile = resolve_profile(values["profile"], values["env_id"])
         return {k: v for k, (v, _) in COMPER_PROFILES[self.profile].items()}
 
     def _configure(self) -> None:
@@ -335,6 +167,7 @@ class ComperNode(AgentNode):
             self._open_eval_env(**self._sim_protocol())
         self.frames = 0              # emulator frames of the run, skipped ones included
         self.returns: list[float] = []
+        self.return_frames: list[int] = []      # the run's frames when each training episode ended
         self.restored = 0
         self.updates = 0
         self.last_reduce_step = -(10 ** 9)
@@ -347,6 +180,9 @@ class ComperNode(AgentNode):
         c = state["counters"]
         self.frames, self.updates = int(c["frames"]), int(c.get("updates", 0))
         self.returns = [float(x) for x in state.get("returns", [])]
+        self.return_frames = [int(x) for x in state.get("return_frames", [])]
+        if len(self.return_frames) != len(self.returns):   # a checkpoint from before they were kept
+            self.return_frames = [-1] * (len(self.returns) - 1) + [self.frames] if self.returns else []
         if hasattr(self, "evals"):
             self.evals = list(state.get("evals", []))
 
@@ -354,6 +190,7 @@ class ComperNode(AgentNode):
         st = super()._state()
         st["counters"].update(frames=self.frames, updates=self.updates)
         st["returns"] = list(self.returns)
+        st["return_frames"] = list(self.return_frames)
         st["evals"] = list(getattr(self, "evals", []))
         return st
 
@@ -375,7 +212,7 @@ class ComperNode(AgentNode):
         p, c = self.p, self.cfg
         return (f"{self.NAMES[p.algorithm]} on {p.env_id} (obs {list(self.obs_shape)} {np.dtype(self.OBS_DTYPE).name}, "
                 f"{self.info.num_actions} actions, frame skip {self.frame_skip}), {p.bringup} bring-up, "
-                f"{self._resume_text()} to {p.total_frames} frames"
+                f"{'resuming at step ' + str(self.step) if self.step else 'fresh run'} to {p.total_frames} frames"
                 + (f" (max {p.max_steps} steps)" if p.max_steps > 0 else "")
                 + f"; update every {c.train_frequency} steps from step {c.learning_starts}, batch {c.batch_size}"
                 + (f"; reduce every {p.reduce_every} steps x {p.reduce_batch} sets via {self.reducer}"
@@ -387,10 +224,17 @@ class ComperNode(AgentNode):
 
     def _before_loop(self) -> None:
         p = self.p
+        touched = sets_touched_per_reduction(p.reduce_every, self.cfg.batch_size, self.cfg.train_frequency,
+                                             p.restore_batch)
+        if self.uses_memory and p.reduce_batch < touched:
+            self.log.warning(f"reduce_batch {p.reduce_batch} < up to {touched} sets stored into between two "
+                             f"reductions (reduce_every {p.reduce_every} x (1 + batch {self.cfg.batch_size} / "
+                             f"train_frequency {self.cfg.train_frequency})): TM may fall behind and QT's targets "
+                             f"go stale; -p reduce_batch:={touched} or more keeps pace (docs/comper.md)")
         self.start_frames = self.frames
-        self._schedule_checkpoints(p.checkpoint_every)
-        self.next_stats = self._next_due(p.stats_every)
-        self.next_eval = self._next_due(self.eval_every)
+        self.outputs.schedule_checkpoints(p.checkpoint_every, self.step)
+        self.next_stats = next_due(self.step, p.stats_every)
+        self.next_eval = next_due(self.step, self.eval_every)
         if self.eval_every > 0 and self.step == 0:
             self.evaluate()       # the untrained policy: the curve's first point
 
@@ -416,9 +260,10 @@ class ComperNode(AgentNode):
         if self.eval_every > 0 and not self.stop_event.is_set() and last_eval != self.step:
             self.evaluate()       # the final policy
         if self.uses_memory and self.pending:
-            if self.pending[-1][6] is None:    # stopped mid-episode: label the last one too
-                self.pending[-1][6] = float(self.learner.act(self.pending[-1][3], epsilon=0.0)[1].max()) \
-                    * (0.0 if self.pending[-1][4] else 1.0)
+            last = self.pending[-1]
+            if last.label is None:    # stopped mid-episode: label the last one too
+                last.label = float(self.learner.act(last.next_state, epsilon=0.0)[1].max()) \
+                    * (0.0 if last.terminated else 1.0)
             self._flush(with_restore=False)
 
     def _final_records(self, rc: int) -> None:
@@ -432,8 +277,7 @@ class ComperNode(AgentNode):
         eps = self.learner.epsilon(self.frames)
         extra = f" | frames {self.frames} | eps {eps:.3f}"
         if self.uses_memory:
-            qv = self.qt_local.version if self.qt_local is not None else 0
-            extra += f" | RTM {self.rtm_size}" + (f" | QT v{qv}" if self.uses_qt else "")
+            extra += f" | RTM {self.rtm_size}" + (f" | QT v{self.mem.qt_version}" if self.uses_qt else "")
         else:
             extra += f" | replay {len(self.replay)}"
         if "loss" in self.last_update:
@@ -466,6 +310,7 @@ class ComperNode(AgentNode):
 
     def _end_episode(self, terminated: bool, truncated: bool) -> None:
         self.returns.append(float(self.ep_return))
+        self.return_frames.append(int(self.frames))
         if self.ep_rows:
             self.ep_parts.append(self._transitions(self.ep_rows))
             self.ep_rows = []
@@ -480,13 +325,13 @@ class ComperNode(AgentNode):
         c = self.cfg
         with self.ptimers("learner"):
             a, q = self.learner.act(obs, frames=self.frames)
-        if self.pending and self.pending[-1][6] is None:     # next_value label of the previous transition
-            self.pending[-1][6] = float(q.max())
+        if self.pending and self.pending[-1].label is None:     # next_value label of the previous transition
+            self.pending[-1].label = float(q.max())
         r, nxt = self._sim_step(a)
         term, trunc = bool(r.terminated), bool(r.truncated)
         self.ep_frames = int(r.frames)
         self.frames = self.ep_frames0 + self.ep_frames
-        over = self._episode_over(term, trunc)
+        over = episode_over(self.episode_rule, term, trunc)
         if self.replay is not None:
             with self.ptimers("learner"):
                 if self.is_atari:
@@ -497,7 +342,7 @@ class ComperNode(AgentNode):
                                                 terminated=np.array([term]), truncated=np.array([trunc])))
             self.stored += 1
             if self.ep_rows is not None:
-                self.ep_rows.append([obs, a, float(r.reward), nxt, term, trunc, None, self.step])
+                self.ep_rows.append(Row(obs, a, r.reward, nxt, term, trunc, self.step))
         else:
             if term:
                 label = 0.0
@@ -508,7 +353,7 @@ class ComperNode(AgentNode):
                     label = float(self.learner.act(nxt, epsilon=0.0)[1].max())
             else:
                 label = None
-            self.pending.append([obs, a, float(r.reward), nxt, term, trunc, label, self.step])
+            self.pending.append(Row(obs, a, r.reward, nxt, term, trunc, self.step, label))
         self.new_episode = False
         self.step += 1
         if self.step % c.train_frequency == 0 and self.step >= c.learning_starts:
@@ -523,20 +368,11 @@ class ComperNode(AgentNode):
 
     def _labelled(self) -> int:
         n = len(self.pending)
-        return n - 1 if n and self.pending[-1][6] is None else n
+        return n - 1 if n and self.pending[-1].label is None else n
 
-    def _transitions(self, rows: list) -> Transitions:
-        """Transitions of this episode from rows [s, a, r, s', terminated, truncated, label, step]
-        (labels left empty when the rows have none: dqn)."""
-        cols = list(zip(*rows))
-        n = len(rows)
-        return Transitions(states=np.stack(cols[0]), actions=np.asarray(cols[1], np.float32),
-                           rewards=np.asarray(cols[2], np.float32), next_states=np.stack(cols[3]),
-                           terminated=np.asarray(cols[4], bool), truncated=np.asarray(cols[5], bool),
-                           value_labels=(np.asarray(cols[6], np.float32) if cols[6][0] is not None
-                                         else np.zeros(0, np.float32)),
-                           episode_ids=np.full(n, self.episodes, np.uint64),
-                           steps=np.asarray(cols[7], np.uint64), run_id=self.run_id)
+    def _transitions(self, rows: list[Row]) -> Transitions:
+        """This episode's transitions (labels left empty when the rows have none: dqn)."""
+        return rows_to_transitions(rows, self.episodes, self.run_id)
 
     def _flush(self, with_restore: bool) -> None:
         """One store call: the labelled new transitions (+ the previous update's batch re-stored)."""
@@ -556,42 +392,42 @@ class ComperNode(AgentNode):
             return
         t = parts[0] if len(parts) == 1 else Transitions.concatenate(parts)
         with self.ptimers("memory"):
-            self.memory.store(t)
+            self.mem.store(t)
 
     # ------------------------------------------------------------------------------ memory
     def _reduce(self) -> None:
         self.last_reduce_step = self.step
-        if self._reduce_overlapped():   # reduce_overlap: learning goes on; _reduce_collect finishes it
+        if self.mem.start_overlapped():   # reduce_overlap: learning goes on; mem.collect finishes it
             return
         with self.ptimers("qt" if self.reducer == "qt_trainer" else "memory_reduce"):
-            r = self._reduce_call()
+            r = self.mem.reduce()
         self._after_reduce(r)
         if self.uses_qt and r.qt_version > 0:
             with self.ptimers("qt_wait"):
-                self._wait_qt_model(r.qt_version)
+                self.mem.wait_qt_model(r.qt_version)
 
     def _after_reduce(self, r) -> None:
         self.metrics.write("reduce", step=self.step, frames=self.frames, rtm_size=self.rtm_size,
-                           **self.last_reduce)
+                           **self.mem.last_reduce)
 
     def _sample(self) -> tuple[Transitions, np.ndarray] | None:
         """(batch, set sizes) for the next update: from RTM prefetched up to the next reduction
-        (AgentNode._next_batch), from TM (COMPER-M) one call per update."""
+        (MemoryLink.next_batch), from TM (COMPER-M) one call per update."""
         k = self.cfg.batch_size
         if self.sample_source == "rtm":
             k = min(k, self.rtm_size)
         if k < 1:
             return None
         steps_left = self.p.reduce_every - (self.step - self.last_reduce_step)
-        got = self._next_batch(k, self.sample_source, max(1, -(-steps_left // self.cfg.train_frequency)))
+        got = self.mem.next_batch(k, self.sample_source, updates_before_reduce(steps_left, self.cfg.train_frequency))
         if got is None:     # fewer entries than asked (TM drained by a reduction, RTM evictions)
             with self.ptimers("memory"):
-                st = self._get_stats()
+                st = self.mem.stats()
             avail = st["tm_sets"] if self.sample_source == "tm" else st["rtm_size"]
             k = min(k, avail)
             if k < 1:
                 return None
-            got = self._next_batch(k, self.sample_source, 1)
+            got = self.mem.next_batch(k, self.sample_source, 1)
             if got is None:
                 return None
         return got
@@ -601,7 +437,7 @@ class ComperNode(AgentNode):
             rec = {"replay_size": len(self.replay), "replay_bytes": self.replay.nbytes}
         else:
             with self.ptimers("memory"):
-                rec = self._get_stats()
+                rec = self.mem.stats()
             if self.set_counts:
                 cnt = np.concatenate(self.set_counts)
                 rec.update(sampled_set_size_mean=float(cnt.mean()), sampled_set_size_max=int(cnt.max()),
@@ -624,8 +460,8 @@ class ComperNode(AgentNode):
                 self.last_update = self.learner.update(batch)
         else:
             self._flush(with_restore=True)
-            self._reduce_collect(wait=False)      # reduce_overlap: a reduction that has answered
-            if self.rtm_size == 0 or self.step - self.last_reduce_step >= p.reduce_every:
+            self.mem.collect(wait=False)      # reduce_overlap: a reduction that has answered
+            if reduce_due(self.step - self.last_reduce_step, p.reduce_every, self.rtm_size):
                 self._reduce()
             got = self._sample()
             if got is None:
@@ -637,8 +473,7 @@ class ComperNode(AgentNode):
                 if p.qt_targets == "rtm" and self.sample_source == "rtm":
                     targets = batch.value_labels
                 else:
-                    with self.qt_cond:
-                        qt = self.qt_local
+                    qt = self.mem.qt_model()
                     if qt is None:
                         self.log.warning("no QTModel received yet: update skipped (is the QT trainer "
                                          "publishing on qt_model?)", throttle_duration_sec=10.0)
@@ -679,7 +514,7 @@ class ComperNode(AgentNode):
         self._write_summary(elapsed, steps, self.frames - self.start_frames, timers)
 
     def _write_summary(self, elapsed: float, steps: int, frames: int, timers: dict) -> None:
-        s = protocol_summary(self.returns)
+        s = protocol_summary(self.returns, self.return_frames, self.p.total_frames)
         summary = {"run_id": self.run_id, "algorithm": self.p.algorithm, "env_id": self.p.env_id, "profile": self.profile,
                    "seed": int(self.cfg.seed), "frame_stack": int(self.cfg.frame_stack),
                    "total_frames_budget": int(self.p.total_frames), "frames": int(self.frames), "steps": int(self.step),
@@ -694,7 +529,7 @@ class ComperNode(AgentNode):
                    "sampling": {"source": ("replay" if not self.uses_memory else
                                            self.sample_source),
                                 "target": "qt" if self.uses_qt else "target_network",
-                                "reducer": self.reducer, "sample_calls": int(self.sample_calls),
+                                "reducer": self.reducer, "sample_calls": int(self.mem.sample_calls if self.mem else 0),
                                 "restored": int(self.restored)}}
         run_io.write_text_atomic(self.run_dir.file("summary.json"), json.dumps(summary, indent=1, default=float))
         t = " | ".join(f"tercile {j + 1} (to episode {x['end_episode']}): {x['mean']:.1f} +- {x['std']:.1f}"

@@ -22,11 +22,13 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
+from .core.protocol import final_performance, last_n_rule, tercile_summaries
+
 __all__ = [
     "EpisodeRecord", "EvalPoint", "RunData", "Episode", "find_bags", "read_runs",
     "reconstruct_episodes", "discounted_returns", "final_performance", "last_n_rule",
     "tercile_summaries", "eval_points", "run_summary", "group_summaries", "cross_check",
-    "load_policy", "q_vs_mc", "fitted_q_evaluation", "synthetic_run",
+    "load_policy", "q_vs_mc", "fitted_q_evaluation",
 ]
 
 TRAIN, EVAL, SIM = "train", "eval", "sim"
@@ -275,39 +277,7 @@ def discounted_returns(rewards: np.ndarray, episode_ends: np.ndarray, gamma: flo
 
 # --------------------------------------------------------------------------------------------
 # the thesis's summaries (method.md section 5)
-def last_n_rule(n_episodes: int, *, n: int = 10, n_small: int = 3, small_below: int = 25) -> int:
-    """Episodes averaged for the final score: the last 10, or the last 3 for runs with under 25."""
-    return n_small if n_episodes < small_below else n
-
-
-def final_performance(returns, **kw) -> tuple[float, int]:
-    """(mean of the last 10 training episode returns (last 3 with under 25 episodes), n used)."""
-    r = np.asarray(returns, dtype=np.float64)
-    if r.size == 0:
-        return math.nan, 0
-    k = min(last_n_rule(r.size, **kw), r.size)
-    return float(np.mean(r[-k:])), k
-
-
-def tercile_summaries(progress, returns, *, budget: float | None = None, n: int = 5,
-                      n_small: int = 3, small_below: int = 25) -> list[dict]:
-    """Mean of the last n (5; 3 for runs with under 25 episodes) episodes that ended by the end
-    of each tercile of the budget. progress: frames (or steps) of the run when each episode ended;
-    budget: the run's frame (or step) budget, default the last episode's progress."""
-    p = np.asarray(progress, dtype=np.float64)
-    r = np.asarray(returns, dtype=np.float64)
-    if p.size == 0:
-        return [{"tercile": k, "end": math.nan, "mean": math.nan, "n": 0} for k in (1, 2, 3)]
-    budget = float(budget if budget else p.max())
-    k_use = n_small if p.size < small_below else n
-    out = []
-    for k in (1, 2, 3):
-        end = budget * k / 3.0
-        sel = r[p <= end + 1e-9] if k < 3 else r     # the episode in progress at the budget finishes
-        m = sel[-k_use:]
-        out.append({"tercile": k, "end": end, "mean": float(np.mean(m)) if m.size else math.nan,
-                    "n": int(m.size)})
-    return out
+# last_n_rule, final_performance, tercile_summaries: core/protocol.py (also used by comper_node)
 
 
 def eval_points(run: RunData) -> list[dict]:
@@ -565,44 +535,3 @@ def fitted_q_evaluation(policy: Policy, t: Transitions, *, gamma: float = 0.99, 
 
 # --------------------------------------------------------------------------------------------
 # synthetic runs (tests and benchmarks)
-def synthetic_run(n_steps: int, *, obs_dim: int = 11, action_dim: int = 3, seed: int = 0,
-                  min_len: int = 20, max_len: int = 400, run_id: str = "synthetic") -> tuple[Transitions, list[dict]]:
-    """A Hopper-like run: contiguous episodes (next_state[t] == state[t+1]), float64 rewards summed
-    per episode as an agent publishes them. Returns (transitions, episode summaries as dicts)."""
-    rng = np.random.default_rng(seed)
-    lens = []
-    total = 0
-    while total < n_steps:
-        k = int(min(rng.integers(min_len, max_len + 1), n_steps - total))
-        lens.append(k)
-        total += k
-    states, next_states, actions, rewards, term, trunc, eids, steps = [], [], [], [], [], [], [], []
-    summaries = []
-    step = 0
-    for eid, k in enumerate(lens):
-        obs = rng.standard_normal((k + 1, obs_dim)).astype(np.float32)
-        r64 = rng.normal(1.0, 0.5, k)           # what the environment returns (float64)
-        states.append(obs[:-1])
-        next_states.append(obs[1:])
-        actions.append(rng.uniform(-1, 1, (k, action_dim)).astype(np.float32))
-        rewards.append(r64.astype(np.float32))
-        terminated = bool(rng.random() < 0.7) if k < max_len else False
-        te = np.zeros(k, bool)
-        tr = np.zeros(k, bool)
-        (te if terminated else tr)[-1] = True
-        term.append(te)
-        trunc.append(tr)
-        eids.append(np.full(k, eid, np.uint64))
-        steps.append(np.arange(step, step + k, dtype=np.uint64))
-        step += k
-        ret = 0.0
-        for x in r64:
-            ret += float(x)
-        summaries.append({"run_id": run_id, "episode_id": eid, "episode_return": ret, "length": k,
-                          "frames": k, "terminated": terminated, "truncated": not terminated,
-                          "global_step": step, "global_frames": step})
-    t = Transitions(np.concatenate(states), np.concatenate(actions), np.concatenate(rewards),
-                    np.concatenate(next_states), np.concatenate(term), np.concatenate(trunc),
-                    value_labels=rng.standard_normal(step).astype(np.float32),
-                    episode_ids=np.concatenate(eids), steps=np.concatenate(steps), run_id=run_id)
-    return t, summaries

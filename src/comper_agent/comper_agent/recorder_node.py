@@ -34,18 +34,18 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 
+from comper_msgs_py.qos import RECORDED_QOS
 from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 
 from .recording import (ChunkedBagWriter, RecorderConfig, comper_typestore, make_qos,
                         parse_topic_spec)
 
-__all__ = ["RecorderNode", "EpisodeTopics", "RecordingFlow", "EPISODE_QOS", "STATUS_QOS", "main",
+__all__ = ["RecorderNode", "RecordingFlow", "EPISODE_QOS", "STATUS_QOS", "main",
            "run_directory"]
 
 #: QoS of <agent>/transitions, <agent>/episodes, <agent>/evaluations (docs/architecture.md)
-EPISODE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
+EPISODE_QOS = RECORDED_QOS
 #: QoS of <recorder>/status: the latest count is all that matters, and a late subscriber gets it
 STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -234,54 +234,6 @@ class RecorderNode(Node):
     def destroy_node(self):
         self.close()
         return super().destroy_node()
-
-
-class EpisodeTopics:
-    """The publishers of the recording contract for an agent node (docs/recording.md)::
-
-        topics = EpisodeTopics(self)                       # ~/transitions, ~/episodes, ~/evaluations
-        topics.transitions(episode_transitions)            # Transitions with value_labels, episode_ids, steps
-        topics.episode(run_id=..., env_id=..., source="train", episode_id=..., episode_return=..., ...)
-        topics.evaluation(run_id=..., algorithm=..., env_id=..., global_step=..., returns=[...], lengths=[...])
-    """
-
-    def __init__(self, node: Node, prefix: str = "~", qos: QoSProfile = EPISODE_QOS):
-        from comper_msgs.msg import EpisodeSummary, EvaluationResult, TransitionBatch
-        self.node = node
-        self._EpisodeSummary, self._EvaluationResult = EpisodeSummary, EvaluationResult
-        self.transitions_pub = node.create_publisher(TransitionBatch, f"{prefix}/transitions", qos)
-        self.episodes_pub = node.create_publisher(EpisodeSummary, f"{prefix}/episodes", qos)
-        self.evaluations_pub = node.create_publisher(EvaluationResult, f"{prefix}/evaluations", qos)
-
-    def transitions(self, t) -> None:
-        from comper_msgs_py.convert import transitions_to_batch
-        msg = transitions_to_batch(t)
-        msg.header.stamp = self.node.get_clock().now().to_msg()
-        self.transitions_pub.publish(msg)
-
-    def episode(self, **fields) -> None:
-        msg = self._EpisodeSummary()
-        msg.header.stamp = self.node.get_clock().now().to_msg()
-        for k, v in fields.items():
-            setattr(msg, k, v)
-        self.episodes_pub.publish(msg)
-
-    def evaluation(self, *, returns, lengths, **fields) -> None:
-        import numpy as np
-        msg = self._EvaluationResult()
-        msg.header.stamp = self.node.get_clock().now().to_msg()
-        for k, v in fields.items():
-            setattr(msg, k, v)
-        r = np.asarray(returns, dtype=np.float64)
-        msg.episode_returns = r.tolist()
-        msg.episode_lengths = [int(x) for x in lengths]
-        msg.mean_return = float(r.mean()) if r.size else 0.0
-        msg.std_return = float(r.std()) if r.size else 0.0
-        self.evaluations_pub.publish(msg)
-
-    def destroy(self) -> None:
-        for p in (self.transitions_pub, self.episodes_pub, self.evaluations_pub):
-            self.node.destroy_publisher(p)
 
 
 class RecordingFlow:

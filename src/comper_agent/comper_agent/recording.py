@@ -39,8 +39,8 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from ruamel.yaml import YAML
 
 __all__ = ["comper_typestore", "find_msg_dir", "bag_typestore", "ChunkedBagWriter", "repair_bag",
-           "RecorderConfig", "parse_topic_spec", "bag_info", "write_run_bag", "transitions_cdr",
-           "episode_cdr", "evaluation_cdr", "TYPE_BY_SUFFIX", "DEFAULT_TOPICS", "write_metadata",
+           "RecorderConfig", "parse_topic_spec", "bag_info", 
+           "TYPE_BY_SUFFIX", "DEFAULT_TOPICS", "write_metadata",
            "make_qos", "STORAGE_SUFFIX", "BAG_VERSION"]
 
 BAG_VERSION = 9
@@ -470,83 +470,3 @@ def parse_topic_spec(spec: str) -> tuple[str, str | None]:
 def bag_info(path: str | os.PathLike) -> dict:
     """The bag's metadata.yaml (rosbag2_bagfile_information) as a dict."""
     return YAML(typ="safe").load((Path(path) / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-
-
-# --------------------------------------------------------------------------------------------
-# building messages without rclpy (synthetic bags for tests and benchmarks, conversions)
-def _ros_array(store, x):
-    import numpy as np
-    x = np.asarray(x)
-    u8 = x.dtype == np.uint8
-    return store.types["comper_msgs/msg/Array"](
-        dtype=1 if u8 else 0, shape=np.asarray(x.shape, np.uint32),
-        data_f32=np.zeros(0, np.float32) if u8 else np.ascontiguousarray(x, np.float32).ravel(),
-        data_u8=np.ascontiguousarray(x).ravel() if u8 else np.zeros(0, np.uint8))
-
-
-def _header(store, stamp_ns: int = 0):
-    T = store.types
-    return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
-        sec=int(stamp_ns // 10**9), nanosec=int(stamp_ns % 10**9)), frame_id="")
-
-
-def transitions_cdr(store, t, stamp_ns: int = 0) -> bytes:
-    """comper_msgs_py.arrays.Transitions -> CDR bytes of a comper_msgs/TransitionBatch."""
-    import numpy as np
-    msg = store.types["comper_msgs/msg/TransitionBatch"](
-        header=_header(store, stamp_ns), run_id=t.run_id, states=_ros_array(store, t.states),
-        actions=_ros_array(store, np.asarray(t.actions, np.float32)),
-        rewards=np.asarray(t.rewards, np.float32), next_states=_ros_array(store, t.next_states),
-        terminated=np.asarray(t.terminated, bool), truncated=np.asarray(t.truncated, bool),
-        value_labels=np.asarray(t.value_labels, np.float32), episode_ids=np.asarray(t.episode_ids, np.uint64),
-        steps=np.asarray(t.steps, np.uint64))
-    return bytes(store.serialize_cdr(msg, "comper_msgs/msg/TransitionBatch"))
-
-
-def episode_cdr(store, stamp_ns: int = 0, **fields) -> bytes:
-    """Keyword fields of comper_msgs/EpisodeSummary (missing ones default to 0 / '' / False)."""
-    defaults = dict(run_id="", env_id="", source="train", episode_id=0, episode_return=0.0, length=0,
-                    frames=0, terminated=False, truncated=False, global_step=0, global_frames=0, wall_time_s=0.0)
-    defaults.update(fields)
-    msg = store.types["comper_msgs/msg/EpisodeSummary"](header=_header(store, stamp_ns), **defaults)
-    return bytes(store.serialize_cdr(msg, "comper_msgs/msg/EpisodeSummary"))
-
-
-def evaluation_cdr(store, stamp_ns: int = 0, *, returns, lengths, **fields) -> bytes:
-    import numpy as np
-    r = np.asarray(returns, np.float64)
-    defaults = dict(run_id="", algorithm="", env_id="", global_step=0)
-    defaults.update(fields)
-    msg = store.types["comper_msgs/msg/EvaluationResult"](
-        header=_header(store, stamp_ns), episode_returns=r, episode_lengths=np.asarray(lengths, np.uint32),
-        mean_return=float(r.mean()) if r.size else 0.0, std_return=float(r.std()) if r.size else 0.0, **defaults)
-    return bytes(store.serialize_cdr(msg, "comper_msgs/msg/EvaluationResult"))
-
-
-def write_run_bag(path, transitions, summaries, evaluations=(), *, agent: str = "comcact_node",
-                  env_id: str = "Hopper-v4", algorithm: str = "comcact", storage: str = "mcap",
-                  max_file_size_bytes: int = 256 * 2**20) -> Path:
-    """Write a run as an agent + recorder would: per episode one TransitionBatch then its
-    EpisodeSummary; evaluations: (global_step, returns, lengths)."""
-    import numpy as np
-    store = comper_typestore()
-    ts = 1_700_000_000 * 10**9
-    with ChunkedBagWriter(path, storage=storage, max_file_duration_s=0, max_file_size_bytes=max_file_size_bytes,
-                          custom_data={"run_id": transitions.run_id, "algorithm": algorithm}) as w:
-        ht = w.add_topic(f"/{agent}/transitions", "comper_msgs/msg/TransitionBatch", [make_qos()])
-        he = w.add_topic(f"/{agent}/episodes", "comper_msgs/msg/EpisodeSummary", [make_qos()])
-        hv = w.add_topic(f"/{agent}/evaluations", "comper_msgs/msg/EvaluationResult", [make_qos()])
-        evals = sorted(evaluations, key=lambda e: e[0])
-        ids = np.asarray(transitions.episode_ids, np.int64)
-        bounds = np.flatnonzero(np.diff(ids)) + 1
-        starts = np.concatenate([[0], bounds])
-        ends = np.concatenate([bounds, [len(transitions)]])
-        for s, a, b in zip(summaries, starts, ends):
-            ts += 10**6
-            w.write(ht, ts, transitions_cdr(store, transitions.take(slice(int(a), int(b))), ts))
-            w.write(he, ts, episode_cdr(store, ts, env_id=env_id, **s))
-            while evals and evals[0][0] <= s["global_step"]:
-                step, rets, lens = evals.pop(0)
-                w.write(hv, ts, evaluation_cdr(store, ts, returns=rets, lengths=lens, run_id=transitions.run_id,
-                                               algorithm=algorithm, env_id=env_id, global_step=int(step)))
-    return Path(path)

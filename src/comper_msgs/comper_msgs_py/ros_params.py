@@ -27,16 +27,20 @@ def _ptype(typ) -> int:
     return _PTYPE[typ]
 
 
-def declare_config(node, cls, *, prefix: str = "", overrides: dict | None = None):
+def declare_config(node, cls, *, prefix: str = "", overrides=None, declare_first: tuple = ()):
     """Declare every field of `cls` on `node` (read-only after start) and return the config.
 
     overrides: defaults to use instead of the dataclass defaults (e.g. an agent choosing the
-    memory's reduce_batch); the command line and parameter files still win.
+    memory's reduce_batch), or a function of the values declared so far that returns them (a
+    named profile that depends on other parameters); the command line and parameter files still
+    win. declare_first: fields declared before the others (those such a function reads).
     """
     values = {}
-    for f, default, typ in spec_of(cls):
-        if overrides and f.name in overrides:
-            default = overrides[f.name]
+    specs = sorted(spec_of(cls), key=lambda s: s[0].name not in declare_first)   # stable
+    for f, default, typ in specs:
+        ov = overrides(values) if callable(overrides) else overrides
+        if ov and f.name in ov:
+            default = ov[f.name]
         m = f.metadata
         # floats accept integers too (`-p delta:=0`, `-p lease_timeout_s:=60`): rclpy would refuse an
         # INTEGER for a DOUBLE parameter; config_from_dict coerces and range-checks the value below

@@ -19,12 +19,12 @@ import sys
 import numpy as np
 import rclpy
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from comper_msgs.msg import Array, EpisodeSummary
 from comper_msgs.srv import EnvInfo, Reset, Step, StepMany
 from comper_msgs_py.arrays import TransitionError
 from comper_msgs_py.convert import array_to_numpy, numpy_to_array, numpy_to_seq, transitions_to_batch
+from comper_msgs_py.qos import RECORDED_QOS
 from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 
@@ -32,12 +32,9 @@ from .core import EpisodeRecord, SimBridge, SimConfig, SimError
 
 __all__ = ["SimNode", "main", "EPISODES_QOS"]
 
-# Episode summaries are few (one per episode) and every one counts for the learning curves, so
-# they are sent reliably; keep_last 100 lets a slow or briefly busy subscriber catch up on a burst
-# (step_many with autoreset can end many short episodes in one call) without unbounded memory.
-# Volatile: a late joiner does not need past episodes (recorders start before the run).
-EPISODES_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
-                          reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+# Episode summaries are few (one per episode) and every one counts for the learning curves: the
+# recorded topics' QoS (comper_msgs_py.qos says why reliable, keep-last 100, volatile)
+EPISODES_QOS = RECORDED_QOS
 
 _REFUSED = (SimError, TransitionError)
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-from .config import SimConfig
+from .config import EPISODE_END_RULES, SimConfig, episode_over
 from .envs import SimEnv, make_env
 
 __all__ = ["SimError", "SimBridge", "StepResult", "StepManyResult", "EpisodeRecord", "EnvInfo"]
@@ -88,7 +88,7 @@ class SimBridge:
         self.env = env if env is not None else make_env(self.config)
         self._clip = self.config.action_out_of_range == "clip"
         rule = self.config.episode_end
-        if rule not in ("standard", "truncation_only", "termination_only"):
+        if rule not in EPISODE_END_RULES:
             raise SimError(f"episode_end must be standard, truncation_only or termination_only, got {rule!r}")
         self._rule = rule
         self._start_time = time.monotonic()
@@ -217,13 +217,7 @@ class SimBridge:
         self.total_steps += 1
         self.total_frames += frames
         self.episode_return += reward
-        rule = self._rule
-        if rule == "standard":
-            over = terminated or truncated
-        elif rule == "truncation_only":
-            over = truncated
-        else:
-            over = terminated
+        over = episode_over(self._rule, terminated, truncated)
         if not over and self.env.game_over_ends_episode and (terminated or truncated):
             over = True   # ALE: the emulator cannot continue after game over or its frame cap
         record = None

@@ -10,9 +10,19 @@ from dataclasses import dataclass
 
 from comper_msgs_py.params import param
 
-__all__ = ["SimConfig", "EPISODE_END_RULES"]
+__all__ = ["SimConfig", "EPISODE_END_RULES", "episode_over"]
 
 EPISODE_END_RULES = ("standard", "truncation_only", "termination_only")
+
+
+def episode_over(rule: str, terminated: bool, truncated: bool) -> bool:
+    """Whether a step ends the episode under an episode end rule (only terminated masks the
+    bootstrap, whatever the rule; ALE's game over ends it in any case: SimBridge)."""
+    if rule == "truncation_only":
+        return bool(truncated)
+    if rule == "termination_only":
+        return bool(terminated)
+    return bool(terminated or truncated)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,105 @@
+"""AgentRun: one learner run's outputs, with no ROS in it: the run directory (fresh, or the
+checkpoint's on resume), its logs (metrics.jsonl, progress.csv, TensorBoard scalars, console
+progress), checkpoints when due, the wall clock across resumes, and the time split at the end.
+Files and formats: :mod:`comper_agent.run_io`.
+"""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Callable
+
+from . import run_io
+
+__all__ = ["AgentRun", "next_due"]
+
+
+def next_due(step: int, every: int) -> int | None:
+    """The first multiple of `every` after `step` (None when every is 0: never)."""
+    return (step // every + 1) * every if every > 0 else None
+
+
+class AgentRun:
+    """p: the node's AgentRunConfig (runs_root, run_id, resume, keep_checkpoints, tensorboard,
+    progress_period_s); seed: the learner's seed (for the default run id). Resolving ``resume``
+    loads the checkpoint (``resume_state``), whose algorithm and task must match."""
+
+    def __init__(self, p, seed: int):
+        self.p = p
+        self.resume_state = None
+        self.resume_path = None
+        run_id, runs_root = p.run_id, Path(p.runs_root)
+        if p.resume:
+            from .core.checkpoint import load_checkpoint
+            ck = run_io.resolve_checkpoint(p.resume)
+            self.resume_state = load_checkpoint(ck)
+            meta = self.resume_state["run"]
+            if meta["algorithm"] != p.algorithm or meta["env_id"] != p.env_id:
+                raise ValueError(f"{ck} is a {meta['algorithm']} run on {meta['env_id']}; start with "
+                                 f"-p algorithm:={meta['algorithm']} -p env_id:={meta['env_id']}")
+            run_id = meta["run_id"]
+            runs_root = ck.parent.parent.parent
+            self.resume_path = ck
+        self.run_id = run_id or run_io.default_run_id(p.algorithm, p.env_id, seed)
+        self.dir = run_io.RunDir(runs_root, self.run_id)
+        self.wall_offset = 0.0
+        self.t_start = time.monotonic()
+        self.next_ck: int | None = None
+        self.ck_every = 0
+
+    # --- logs -------------------------------------------------------------------------------
+    def open_logs(self, config: dict, csv_columns: list, progress_total: int, start_step: int) -> None:
+        """config.yaml, then the logs; the wall clock of this session starts here."""
+        d = self.dir
+        d.write_config(config)
+        self.metrics = run_io.MetricsLog(d.file("metrics.jsonl"))
+        self.csv = run_io.CsvLog(d.file("progress.csv"), csv_columns)
+        self.scalars = run_io.ScalarLog(d.file("tb") if self.p.tensorboard else None)
+        self.progress = run_io.Progress(progress_total, self.p.progress_period_s, start_step=start_step)
+        self.t_start = time.monotonic()
+
+    def close_logs(self) -> None:
+        self.metrics.close()
+        self.csv.close()
+        self.scalars.close()
+
+    def wall_time(self) -> float:
+        """Seconds of training over every session of this run (resumes included)."""
+        return self.wall_offset + (time.monotonic() - self.t_start)
+
+    # --- checkpoints ------------------------------------------------------------------------
+    def save(self, state: dict, step: int) -> Path:
+        path = self.dir.save_checkpoint(state, step, self.p.keep_checkpoints)
+        self.metrics.flush()
+        return path
+
+    def schedule_checkpoints(self, every: int, step: int) -> None:
+        self.ck_every = every
+        self.next_ck = next_due(step, every)
+
+    def checkpoint_due(self, step: int) -> bool:
+        """True (once per period) when a periodic checkpoint is due at `step`."""
+        if self.next_ck is None or step < self.next_ck:
+            return False
+        self.next_ck += self.ck_every
+        return True
+
+    # --- time split -------------------------------------------------------------------------
+    def time_split(self, timers: run_io.PhaseTimers, elapsed: float, steps: int, calls: int,
+                   probe: Callable[[], object] | None, probe_calls: int) -> dict:
+        """The time split record: phases, rate, and the ROS transport share estimated from
+        `probe_calls` small service calls (`probe`; None or a failing probe = not estimated)."""
+        probe_ms = float("nan")
+        if probe is not None and probe_calls > 0:
+            try:
+                t0 = time.perf_counter()
+                for _ in range(probe_calls):
+                    probe()
+                probe_ms = 1000.0 * (time.perf_counter() - t0) / probe_calls
+            except RuntimeError:     # a ServiceError or a shut-down context: no estimate
+                pass
+        transport_s = probe_ms / 1000.0 * calls if math.isfinite(probe_ms) else float("nan")
+        rate = steps / elapsed if elapsed > 0 else float("nan")
+        return {"elapsed_s": elapsed, "steps": steps, "steps_per_s": rate, "phases": timers.as_dict(),
+                "ros_round_trip_ms": probe_ms, "service_calls": calls, "transport_estimate_s": transport_s}

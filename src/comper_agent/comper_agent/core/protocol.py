@@ -1,0 +1,72 @@
+"""The Atari protocol's summaries of a run (thesis chapter 5.3; method.md 5), pure numpy.
+
+* :func:`final_performance` - the mean of the last 10 training episodes (the last 3 when the run
+  has fewer than 25 episodes).
+* :func:`tercile_summaries` - the mean of the last 5 (3) episodes that ended by the end of each
+  third of the **frame budget**. Section 5.3 says so ("checkpoints at the end of every tercile on
+  the total frames number"); Table 34's "end of each tercile of episodes" is the looser wording of
+  the same checkpoints. Splitting by episode count instead would move the checkpoints with the
+  agent's skill (a better agent has longer episodes), so the suite uses frames everywhere: the
+  learner's summary.json and ``evaluate`` give the same figures.
+* :func:`protocol_summary` - both, for comper_node's summary.json.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["last_n_rule", "final_performance", "tercile_summaries", "protocol_summary"]
+
+
+def last_n_rule(n_episodes: int, *, n: int = 10, n_small: int = 3, small_below: int = 25) -> int:
+    """Episodes averaged for the final score: the last 10, or the last 3 for runs with under 25."""
+    return n_small if n_episodes < small_below else n
+
+
+def final_performance(returns, **kw) -> tuple[float, int]:
+    """(mean of the last 10 training episode returns (last 3 with under 25 episodes), n used)."""
+    r = np.asarray(returns, dtype=np.float64)
+    if r.size == 0:
+        return math.nan, 0
+    k = min(last_n_rule(r.size, **kw), r.size)
+    return float(np.mean(r[-k:])), k
+
+
+def tercile_summaries(progress, returns, *, budget: float | None = None, n: int = 5,
+                      n_small: int = 3, small_below: int = 25) -> list[dict]:
+    """Mean of the last n (5; 3 for runs with under 25 episodes) episodes that ended by the end
+    of each tercile of the budget. progress: frames (or steps) of the run when each episode ended;
+    budget: the run's frame (or step) budget, default the last episode's progress."""
+    p = np.asarray(progress, dtype=np.float64)
+    r = np.asarray(returns, dtype=np.float64)
+    if p.size == 0:
+        return [{"tercile": k, "end": math.nan, "mean": math.nan, "n": 0} for k in (1, 2, 3)]
+    budget = float(budget if budget else p.max())
+    k_use = n_small if p.size < small_below else n
+    out = []
+    for k in (1, 2, 3):
+        end = budget * k / 3.0
+        sel = r[p <= end + 1e-9] if k < 3 else r     # the episode in progress at the budget finishes
+        m = sel[-k_use:]
+        out.append({"tercile": k, "end": end, "mean": float(np.mean(m)) if m.size else math.nan,
+                    "n": int(m.size)})
+    return out
+
+
+def protocol_summary(returns, frames_at_end, budget: float | None = None) -> dict:
+    """The protocol's figures for one run: returns of the training episodes, frames_at_end the run's
+    frame count when each ended, budget the run's frame budget (default: the last episode's)."""
+    r = np.asarray(returns, dtype=np.float64)
+    n = int(r.size)
+    last, k = final_performance(r)
+    terciles = tercile_summaries(frames_at_end, r, budget=budget)
+    tk = last_n_rule(n, n=5)
+    ends = np.asarray(frames_at_end, dtype=np.float64)
+    for t in terciles:
+        sel = r[ends <= t["end"] + 1e-9] if t["tercile"] < 3 else r
+        part = sel[-tk:]
+        t["end_episode"] = int(sel.size)
+        t["std"] = float(np.std(part)) if part.size else math.nan
+    return {"episodes": n, "last_k": k, "last_mean": last,
+            "last_std": float(np.std(r[-k:])) if k else math.nan, "tercile_k": tk, "terciles": terciles}

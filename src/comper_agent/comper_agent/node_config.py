@@ -1,0 +1,197 @@
+"""The learner nodes' parameters, one place (each a ``param()`` field with its description, thesis
+value and range; ``--help`` and the docs are built from them).
+
+* :class:`AgentRunConfig` - what every learner node declares: bring-up, outputs, recording, node
+  names, timeouts, and the reduction parameters both algorithms share.
+* :class:`ComperNodeConfig`, :class:`ComcactNodeConfig` - each node's own parameters (the
+  learners' hyper-parameters are in :mod:`comper_agent.core.config`).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from comper_msgs_py.params import param
+from comper_sim.core import EPISODE_END_RULES
+
+__all__ = ["AgentRunConfig", "ComperNodeConfig", "ComcactNodeConfig", "redefault", "COMPER_ALGORITHMS"]
+
+COMPER_ALGORITHMS = ("comper", "comper_f", "comper_m", "dqn")
+
+
+def redefault(cls, name: str, default):
+    """A config field of `cls` (description, thesis, range) with another default, for a subclass:
+    ``progress_period_s: float = redefault(AgentRunConfig, "progress_period_s", 10.0)``."""
+    (f,) = [f for f in dataclasses.fields(cls) if f.name == name]
+    return dataclasses.field(default=default, metadata=f.metadata)
+
+
+@dataclass(frozen=True)
+class AgentRunConfig:
+    """Run set-up shared by the learner nodes; a node's config subclasses it with its algorithm's
+    parameters (and redefines algorithm, env_id and the defaults that differ)."""
+
+    algorithm: str = param("", "learning algorithm (each node lists its own)")
+    bringup: str = param(
+        "embedded", "embedded: build the sim, memory and QT trainer nodes in this process; external: use "
+        "nodes started separately, named by sim_node, memory_node, qt_trainer_node",
+        choices=("embedded", "external"))
+    env_id: str = param("", "gymnasium task (embedded: given to the sim node; external: must match the "
+                            "running sim node)")
+    episode_end: str = param(
+        "standard", "embedded sim node's episode end rule (method.md 6.3; only terminated masks the "
+        "bootstrap; an ALE game over always ends the episode). External: the sim's rule is used",
+        choices=EPISODE_END_RULES)
+    runs_root: str = param("runs", "folder holding the run directories")
+    run_id: str = param("", "run directory name; '' = <algorithm>-<env>-s<seed>-<timestamp>")
+    resume: str = param(
+        "", "checkpoint file or run directory to continue from ('' = fresh run). The run continues in "
+        "the checkpoint's run directory with its step count; the memory / replay contents are not in "
+        "the checkpoint and refill from the resumed step, which starts a new episode")
+    keep_checkpoints: int = param(3, "step_<N>.pt files kept besides latest.pt (0 = keep all)", minimum=0)
+    progress_period_s: float = param(5.0, "seconds between console progress lines", minimum=0.0)
+    tensorboard: bool = param(True, "write TensorBoard scalars to <run dir>/tb")
+    record: bool = param(
+        False, "record this run's topics (transitions, episodes, evaluations, memory stats, sim episodes) "
+        "into a rosbag2 bag in <run dir>/bag with a recorder_node (docs/recording.md)")
+    record_storage: str = param("mcap", "bag storage when record is on", choices=("mcap", "sqlite3"))
+    record_process: str = param(
+        "child", "where record:=true runs its recorder_node: 'child' = a child process (its work runs on "
+        "another core; the agent waits until it has subscribed, hands every message over before stopping it, "
+        "and if the agent dies, even by SIGKILL, the recorder gets SIGTERM and closes the bag; its log is "
+        "<run dir>/recorder.log), 'in_process' = a node on this process's executor (one process; costs "
+        "~4-5 percent of the training throughput on Hopper-v4, docs/recording.md)", choices=("child", "in_process"))
+    record_window: int = param(
+        50, "record:=true: most training episodes published but not yet written by the recorder; the agent waits "
+        "beyond it (flow control from the recorder's ~/status). Below the topics' history depth (100), so no "
+        "reliable queue drops an episode when the agent outpaces the recorder", minimum=1, maximum=99)
+    record_wait_s: float = param(
+        60.0, "record:=true: longest wait for the recorder to catch up; after it the backlog is written off with "
+        "a warning and training goes on", minimum=0.0)
+    publish_transitions: bool = param(
+        True, "publish each finished training episode's transitions (with the labels stored) on "
+        "~/transitions, before its ~/episodes summary, while someone subscribes (record:=true does)")
+    prefetch_batches: int = param(
+        32, "most update batches fetched from the memory in one sample call. Only the batches of the updates "
+        "before the next reduction are fetched (RTM does not change in between), each an independent uniform "
+        "draw, so the batches are those of one call per update; sampling from TM (while RTM is empty, or "
+        "COMPER-M) stays one call per update. 1 = one sample call per update",
+        thesis="one draw per update (Algorithms 7 and 8); same distribution", minimum=1)
+    reduce_overlap: bool = param(
+        False, "send each reduction and go on learning (acting, updates from the current RTM, targets from the "
+        "current QT) while the QT trainer and the memory reduce, on the other core; at most one reduction in "
+        "flight (the next one waits for it), the first (RTM empty) is waited for; the new RTM and QT are used "
+        "from the step their answer arrives (variants that reduce)",
+        thesis="the agent waits for each reduction (Algorithms 7 and 8: reduce, then learn)",
+        deviation="on = updates between a reduction's request and its answer use the RTM and QT of the "
+        "previous reduction")
+    reduce_batch: int = param(
+        1_000, "most similar-transition sets popped from TM per reduction (0 = the reducer's own reduce_batch)",
+        thesis="1,000 for COMPER (Table 34), 50,000 for COMCACT (appendix B)", minimum=0)
+    qt_epochs: int = param(0, "QT training passes per reduction; 0 = the QT trainer's qt_epochs (default 1, "
+                              "Keras fit default)", thesis="not given", minimum=0)
+    qt_targets: str = param(
+        "local", "where QT(tau) for the QT target comes from: local = predicted by the latest QTModel received "
+        "(Algorithm 7 line 16, Algorithm 8 lines 29-30); rtm = the prediction RTM stored at the entry's last "
+        "reduction (returned by sample; COMPER-M samples TM and always predicts locally)",
+        choices=("local", "rtm"))
+    qt_wait_s: float = param(2.0, "after a reduction, seconds to wait for the QTModel of that version to "
+                                  "arrive (variants with a QT target)", minimum=0.0)
+    eval_episodes: int = param(10, "full episodes per evaluation (greedy policy, a separate environment in "
+                                   "this process)", thesis="10 (chapter 6)", minimum=1)
+    eval_seed: int = param(
+        -1, "seed of the evaluation environment's resets (episode k of every evaluation starts from seed "
+        "eval_seed + k); -1 = seed + 1000", minimum=-1)
+    sim_node: str = param("sim_node", "name of the simulation node")
+    memory_node: str = param("memory_node", "name of the memory node (not used by the baselines)")
+    qt_trainer_node: str = param("qt_trainer_node", "name of the QT trainer node (variants that train QT)")
+    service_timeout_s: float = param(120.0, "seconds to wait for any one service answer", minimum=0.0)
+    startup_timeout_s: float = param(30.0, "seconds to wait for the nodes' services at start", minimum=0.0)
+    transport_probe_calls: int = param(
+        200, "at the end, this many small service calls measure the ROS round trip for the time split "
+        "(0 = skip)", minimum=0)
+
+
+@dataclass(frozen=True)
+class ComperNodeConfig(AgentRunConfig):
+    """comper_node's own parameters (the learner's hyper-parameters are ComperConfig / DQNConfig)."""
+
+    algorithm: str = param(
+        "comper", "comper (Algorithm 7: RTM sampling, QT target) | comper_f (RTM sampling, DQN loss with a "
+        "target network; chapter 7) | comper_m (QT target, sampling from TM; chapter 7) | dqn (baseline, "
+        "Table 35: in-process replay, target network, no memory / QT nodes)", choices=COMPER_ALGORITHMS)
+    env_id: str = param(
+        "ALE/Freeway-v5", "task with discrete actions: an ALE game (ALE/<Game>-v5: Freeway, Asterix, Seaquest, "
+        "...) or a gymnasium task with vector observations (CartPole-v1, Acrobot-v1, MountainCar-v0); "
+        "embedded: given to the sim node; external: must match the running sim node")
+    profile: str = param(
+        "auto", "named set of learner defaults (core/config.py COMPER_PROFILES, each value with its source; "
+        "-p name:=value still wins): thesis = Algorithm 7 and Tables 32-35; data_efficient = short Atari "
+        "budgets (Adam, one update per step, 4 frames, double DQN; Dopamine's atari_100k DER settings); "
+        "classic_control = vector tasks; auto = thesis for ALE games, classic_control otherwise",
+        thesis="thesis (the only protocol the thesis runs is Atari)",
+        choices=("auto", "thesis", "data_efficient", "classic_control"))
+    eval_every: int = param(
+        -1, "agent steps between evaluations (eval_episodes greedy episodes on a separate environment; 0 = "
+        "never); -1 = never for ALE games (the protocol reports training episodes), 5,000 for vector tasks",
+        thesis="none for Atari (chapter 5 reports training episodes)", minimum=-1)
+    eval_epsilon: float = param(0.0, "epsilon of the evaluated policy (0 = greedy; Dopamine evaluates Atari "
+                                     "with 0.001)", minimum=0.0, maximum=1.0)
+    progress_period_s: float = redefault(AgentRunConfig, "progress_period_s", 10.0)
+    total_frames: int = param(
+        100_000, "frame budget counting skipped frames (a vector task has one frame per step); the episode in "
+        "progress when it is reached finishes", thesis="100,000 (chapter 5)", minimum=1)
+    max_steps: int = param(0, "if > 0, also stop after this many agent steps, even mid-episode (tests, "
+                              "smoke runs)", minimum=0)
+    reduce_every: int = param(100, "agent steps between reductions + QT training (and whenever RTM is "
+                                   "empty)", thesis="100 (Table 34, UTF)", minimum=1)
+    reduce_batch: int = redefault(AgentRunConfig, "reduce_batch", 1_000)
+    qt_wait_s: float = redefault(AgentRunConfig, "qt_wait_s", 5.0)
+    reducer: str = param(
+        "auto", "who reduces TM into RTM: qt_trainer (<qt_trainer_node>/reduce, trains QT) | memory "
+        "(<memory_node>/reduce, newest label as prediction, no QT) | auto = memory for comper_f (it does "
+        "not use QT), qt_trainer otherwise", choices=("auto", "qt_trainer", "memory"))
+    restore_batch: bool = param(True, "re-store each updated batch with fresh labels (thesis 4.1.1; "
+                                      "method.md 4)")
+    store_every: int = param(4, "before learning starts / between updates: steps per store call (an update "
+                                "and an episode end always flush)", minimum=1)
+    stats_every: int = param(
+        1_000, "agent steps between memory statistics records (identities, TM, RTM, set sizes) in "
+        "metrics.jsonl (0 = only at the end)", minimum=0)
+    checkpoint_every: int = param(5_000, "agent steps between checkpoints (0 = only the final one)", minimum=0)
+
+
+@dataclass(frozen=True)
+class ComcactNodeConfig(AgentRunConfig):
+    """comcact_node's own parameters (the learner's hyper-parameters are ComcactConfig / DDPGConfig)."""
+
+    algorithm: str = param(
+        "comcact", "comcact (Algorithm 8: memory + QT step) or ddpg (baseline: plain uniform replay in this "
+        "process, no QT step, no memory / QT trainer nodes)", choices=("comcact", "ddpg"))
+    env_id: str = param(
+        "InvertedPendulum-v4", "gymnasium task (continuous actions): InvertedPendulum-v4, Hopper-v4, "
+        "Walker2d-v4, HalfCheetah-v4, InvertedDoublePendulum-v4, Pendulum-v1, ... (embedded: given to "
+        "the sim node; external: must match the running sim node)")
+    total_steps: int = param(50_000, "agent (environment) steps of the run", thesis="50,000 (chapter 6)",
+                             minimum=1)
+    warmup_steps: int = param(
+        0, "steps of uniformly random actions before the policy acts (sent in batches with step_many; no "
+        "updates meanwhile); 0 = act with mu + noise from the first step",
+        thesis="not given (Algorithm 8 acts with the policy from step 1)", minimum=0)
+    store_every: int = param(
+        10, "agent steps per memory store call (labels are computed when stored; an episode end and every "
+        "reduction flush first, so RTM and the sampled batches are the same as with 1). ddpg: the replay "
+        "gets the transitions in the same blocks (an update may not yet draw the newest <= 9 of them)",
+        thesis="every step",
+        minimum=1, deviation="10: the labels of up to 9 transitions are computed a few updates later; one store "
+        "call per 10 steps measured 31.0 -> 38.5 steps/s on Hopper-v4 (docs/comcact.md); 1 = the thesis")
+    reduce_every: int = param(
+        10, "DDPG updates between reductions (a reduction also runs whenever RTM is empty)",
+        thesis="every iteration (1; Algorithm 8 line 27-28)", minimum=1,
+        deviation="10, chosen by measurement (docs/comcact.md); -p reduce_every:=1 is the thesis's cadence")
+    reduce_batch: int = redefault(AgentRunConfig, "reduce_batch", 50_000)
+    eval_every: int = param(5_000, "steps between evaluations (0 = never)", thesis="5,000 (chapter 6)",
+                            minimum=0)
+    checkpoint_every: int = param(
+        0, "steps between checkpoints (0 = at every evaluation point); a final one is always written",
+        minimum=0)
