@@ -250,12 +250,14 @@ def test_mlp_q_network_for_vector_observations_and_bad_shapes():
 def test_profiles_name_existing_fields_with_a_source_and_auto_follows_the_task():
     from dataclasses import fields
     from comper_agent.core.config import COMPER_PROFILES, resolve_profile
-    names = {f.name for f in fields(ComperConfig)}
+    from comper_agent.node_config import ComperNodeConfig
+    owner = {**{f.name: ComperNodeConfig for f in fields(ComperNodeConfig)},
+             **{f.name: ComperConfig for f in fields(ComperConfig)}}   # a learner or a node parameter
     for profile, values in COMPER_PROFILES.items():
         for k, (v, source) in values.items():
-            assert k in names, (profile, k)
+            assert k in owner, (profile, k)
             assert isinstance(source, str) and len(source) > 10, (profile, k)
-            config_from_dict(ComperConfig, {k: v})                   # a valid value
+            config_from_dict(owner[k], {k: v})                       # a valid value
     assert resolve_profile("auto", "ALE/Freeway-v5") == "thesis"
     assert resolve_profile("auto", "CartPole-v1") == "classic_control"
     assert resolve_profile("data_efficient", "ALE/Asterix-v5") == "data_efficient"

@@ -50,5 +50,6 @@ def test_doc_lists_every_parameter():
 
 def test_comper_doc_lists_every_profile_value():
     from comper_agent.core.config import profile_table_markdown
+    from comper_agent.node_config import ComperNodeConfig
     text = (DOC.parent / "comper.md").read_text()
-    assert profile_table_markdown() in text, "docs/comper.md's profile table is stale (paste profile_table_markdown())"
+    assert profile_table_markdown(ComperNodeConfig) in text, "docs/comper.md's profile table is stale (paste profile_table_markdown())"

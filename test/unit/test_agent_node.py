@@ -151,3 +151,35 @@ def test_graceful_node_ignores_repeated_signals_and_a_stuck_close_times_out():
             proc.kill()
             proc.wait()
 
+
+@pytest.mark.parametrize("env_id, given, expected", [
+    ("CartPole-v1", {}, 4_000),                        # classic_control: a reduction that keeps pace
+    ("CartPole-v1", {"reduce_batch": 1_500}, 1_500),   # the command line still wins
+    ("ALE/Freeway-v5", {}, 1_000)])                     # thesis: Table 34
+def test_a_profile_sets_node_parameters_too_and_the_command_line_still_wins(env_id, given, expected):
+    import types
+
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from comper_msgs_py.ros_params import declare_config
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = rclpy.create_node("profile_probe", context=ctx, parameter_overrides=[
+            Parameter(k, value=v) for k, v in {"env_id": env_id, **given}.items()])
+        holder = types.SimpleNamespace()
+        p = declare_config(node, ComperNodeConfig, declare_first=("algorithm", "env_id", "profile"),
+                           overrides=lambda values: ComperNode._profile_overrides(holder, values))
+        assert p.reduce_batch == expected and holder.profile == ("thesis" if env_id.startswith("ALE/")
+                                                                  else "classic_control")
+        node.destroy_node()
+    finally:
+        ctx.try_shutdown()
+
+
+def test_reduce_batch_pace_rule():
+    from comper_agent.core.memory_schedule import sets_touched_per_reduction
+    assert sets_touched_per_reduction(100, 32, 4, True) == 900 <= 1_000        # the thesis's Atari settings keep pace
+    assert sets_touched_per_reduction(100, 64, 2, True) == 3_300 > 1_000       # classic_control's pace
+    assert sets_touched_per_reduction(100, 64, 2, False) == 100
