@@ -24,7 +24,7 @@ import yaml
 
 from comper_agent.comper_node import ComperNode
 from comper_agent.core.comper import ComperLearner
-from comper_agent.offline import load_policy
+from comper_agent.value_checks import load_policy
 from comper_agent.run_io import resolve_checkpoint
 from comper_msgs_py.params import config_from_dict
 from comper_sim.core.config import SimConfig

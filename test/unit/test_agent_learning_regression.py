@@ -99,7 +99,7 @@ def _greedy_return(lrn, env, episodes=5) -> float:
 def test_classic_control_profile_dqn_learns_cartpole():
     import gymnasium as gym
     values = {k: v for k, (v, _) in COMPER_PROFILES["classic_control"].items()}
-    c = config_from_dict(DQNConfig, {**values, "seed": 0})
+    c = config_from_dict(DQNConfig, {**values, "seed": 0}, ignore_unknown=True)   # reduce_batch: a node parameter
     env, ev = gym.make("CartPole-v1"), gym.make("CartPole-v1")
     lrn = ComperLearner(c, obs_shape=(4,), n_actions=2)
     assert lrn.network == "mlp"

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from comper_agent import offline
+from comper_agent import offline, value_checks
 from comper_agent.offline import (discounted_returns, final_performance, reconstruct_episodes,
                                   tercile_summaries)
 from scaffolding import synthetic_run
@@ -123,18 +123,18 @@ def test_q_vs_mc_and_fqe_with_a_checkpoint(tmp_path):
     t, _ = synthetic_run(1500, seed=5, obs_dim=4, action_dim=2)
     learner = ComcactLearner(DDPGConfig(actor_hidden=[32, 16], critic_hidden=[32, 16]), 4, [-1, -1], [1, 1])
     path = save_checkpoint(tmp_path / "ckpt.pt", {"learner": learner.state_dict(), "counters": {"step": 0}})
-    pol = offline.load_policy(path)
+    pol = value_checks.load_policy(path)
     q_ref = learner.q_values(t.states[:50], t.actions[:50]).reshape(-1)
     np.testing.assert_allclose(pol.q_values(t.states[:50], t.actions[:50]), q_ref, rtol=1e-5, atol=1e-6)
-    res = offline.q_vs_mc(pol, t, gamma=0.9)
+    res = value_checks.q_vs_mc(pol, t, gamma=0.9)
     assert res["n"] == len(t) and np.isfinite(res["bias"]) and -1 <= res["corr"] <= 1
     # reward 1 on average, gamma 0.9: MC returns near 10 away from the episode ends
     assert 5 < res["mean_mc"] < 10.5
-    f = offline.fitted_q_evaluation(pol, t, gamma=0.9, updates=300)
+    f = value_checks.fitted_q_evaluation(pol, t, gamma=0.9, updates=300)
     assert np.isfinite(f["fqe_value"]) and f["initial_states"] > 0
     # nets without batch norm, action after the second hidden layer: rebuilt from the checkpoint alone
     for kw in ({"batch_norm": False}, {"batch_norm": False, "critic_action_input": "output"}):
         plain = ComcactLearner(DDPGConfig(actor_hidden=[32, 16], critic_hidden=[32, 16], **kw), 4, [-1, -1], [1, 1])
         p2 = save_checkpoint(tmp_path / "plain.pt", {"learner": plain.state_dict(), "counters": {"step": 0}})
-        np.testing.assert_allclose(offline.load_policy(p2).q_values(t.states[:20], t.actions[:20]),
+        np.testing.assert_allclose(value_checks.load_policy(p2).q_values(t.states[:20], t.actions[:20]),
                                    plain.q_values(t.states[:20], t.actions[:20]).reshape(-1), rtol=1e-5, atol=1e-6)

@@ -1,18 +1,16 @@
 """agent_node: what the learner nodes (comcact_node, comper_node) share.
 
-* :class:`AgentRunConfig` - the run set-up parameters every learner node declares (bring-up,
-  outputs, recording, node names, timeouts); each node subclasses it with its algorithm's own
-  parameters (:class:`comper_agent.comcact_node.ComcactNodeConfig`,
-  :class:`comper_agent.comper_node.ComperNodeConfig`).
-* :class:`AgentNode` - the learner node's machinery: parameters (``declare_config``), the run
-  directory and resume, the embedded bring-up (``bringup:=embedded``) with an optional in-process
-  recorder (``record:=true``), service clients, the QTModel subscription, ``~/episodes`` and
-  ``~/transitions`` per training episode, checkpoints, the run loop's start / stop / final save,
-  the time split and shutdown. A subclass supplies the algorithm: ``_setup_learner``,
-  ``_before_loop``, ``_loop``, ``_start_line``, ``_progress_line``, checkpoint contents.
-* :func:`run_main` - an entry point's signal handling: the first Ctrl-C / SIGTERM finishes the
-  current step, saves a final checkpoint and exits 0; a second one aborts (130); a node that cannot
-  start logs one ``cannot start: ...`` line and exits 1. ``--help`` lists the parameters.
+:class:`AgentNode` - the learner node's lifecycle: parameters (``node_config``, ``declare_config``,
+profiles), the run's outputs (:class:`~comper_agent.agent_run.AgentRun`), the embedded bring-up
+(:mod:`comper_agent.bringup`), the memory link (:class:`~comper_agent.memory_link.MemoryLink`)
+and the recording link (:class:`~comper_agent.recording_link.RecordingLink`), the sim client,
+``~/episodes``, ``~/evaluations`` and ``~/transitions``, evaluation on a separate environment,
+checkpoints, the run loop's start / stop / final save, the time split and shutdown. A subclass
+supplies the algorithm through the hooks below (``_setup_learner``, ``_loop``, ``_start_line``,
+``_progress_line``, checkpoint contents, ...). The entry point is :mod:`comper_agent.agent_main`.
+
+Size: about half of AgentNode's methods are those hooks (each a few lines with its contract);
+the parts that hold state of their own live in the modules named above.
 """
 from __future__ import annotations
 

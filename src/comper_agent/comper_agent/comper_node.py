@@ -11,13 +11,18 @@ chapter-7 ablations COMPER-F and COMPER-M, and the DQN baseline (Table 35).
     ros2 run comper_agent comper_node --help                            # every parameter
 
 Bring-up (:mod:`comper_agent.bringup`): ``embedded`` (default) builds the simulation, memory and
-QT trainer nodes in this process (separate node objects, one executor in a background thread);
+QT trainer nodes in this process (separate node objects, each on its own executor thread);
 ``external`` uses nodes started with ``ros2 run`` by name. Outputs (:mod:`comper_agent.run_io`):
 ``<runs_root>/<run_id>/`` config.yaml, metrics.jsonl, progress.csv, tb/, checkpoints/, and
-summary.json (the protocol's figures: mean of the last 10 training episodes, or 3 for runs
-with fewer than 25 episodes, and the mean of the last 5 (or 3) episodes at the end of each
-tercile of episodes). The machinery shared with comcact_node (parameters, run directory,
-bring-up, recording, checkpoints, time split, Ctrl-C) is :mod:`comper_agent.agent_node`.
+summary.json (the protocol's figures, :mod:`comper_agent.core.protocol`: mean of the last 10
+training episodes, or 3 for runs with fewer than 25 episodes, and the mean of the last 5 (or 3)
+episodes by the end of each third of the frame budget). The machinery shared with comcact_node
+(run directory, bring-up, memory and recording links, checkpoints, time split, Ctrl-C) is
+:mod:`comper_agent.agent_node` and the modules it names.
+
+Size: one node runs four variants (comper, comper_f, comper_m, dqn) on two kinds of tasks (ALE
+frames with a frame replay, vector observations with an MLP); splitting them would repeat the
+Algorithm 7 loop that they share, which reads top to bottom in ``_agent_step`` / ``_train_step``.
 
 One agent step (all variants): a = epsilon-greedy(Q(s)) with epsilon 1.0 -> 0.01 over 90,000
 frames -> ``<sim>/step``. The value label of transition t (``qt_label`` next_value) is

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import offline
+from . import offline, value_checks
 
 __all__ = ["main", "evaluate"]
 
@@ -290,13 +290,13 @@ def evaluate(paths, out, *, checkpoint=None, gamma: float = 0.99, fqe_updates: i
     if checkpoint:
         from .core.networks import configure_torch
         configure_torch(threads)   # small networks: one thread is fastest, and robust on a busy machine
-        policy = offline.load_policy(checkpoint)
+        policy = value_checks.load_policy(checkpoint)
         for rid, r in sorted(runs.items()):
             if r.transitions is None or len(r.transitions) == 0:
                 continue
-            res = {"q_vs_mc": offline.q_vs_mc(policy, r.transitions, gamma)}
+            res = {"q_vs_mc": value_checks.q_vs_mc(policy, r.transitions, gamma)}
             if fqe_updates > 0:
-                res["fqe"] = offline.fitted_q_evaluation(policy, r.transitions, gamma=gamma, updates=fqe_updates)
+                res["fqe"] = value_checks.fitted_q_evaluation(policy, r.transitions, gamma=gamma, updates=fqe_updates)
             q_results[rid] = res
     plot_files = _plots(out, runs, summaries, groups, q_results) if plots else []
     with open(out / "episodes.csv", "w", newline="") as f:

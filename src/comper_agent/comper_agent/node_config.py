@@ -5,6 +5,8 @@ value and range; ``--help`` and the docs are built from them).
   names, timeouts, and the reduction parameters both algorithms share.
 * :class:`ComperNodeConfig`, :class:`ComcactNodeConfig` - each node's own parameters (the
   learners' hyper-parameters are in :mod:`comper_agent.core.config`).
+* :class:`QtTrainerNodeConfig` - qt_trainer_node's own parameters (QT's are QTConfig /
+  ComcactQTConfig, chosen by ``architecture``).
 """
 from __future__ import annotations
 
@@ -14,7 +16,8 @@ from dataclasses import dataclass
 from comper_msgs_py.params import param
 from comper_sim.core import EPISODE_END_RULES
 
-__all__ = ["AgentRunConfig", "ComperNodeConfig", "ComcactNodeConfig", "redefault", "COMPER_ALGORITHMS"]
+__all__ = ["AgentRunConfig", "ComperNodeConfig", "ComcactNodeConfig", "QtTrainerNodeConfig", "redefault",
+           "COMPER_ALGORITHMS"]
 
 COMPER_ALGORITHMS = ("comper", "comper_f", "comper_m", "dqn")
 
@@ -195,3 +198,22 @@ class ComcactNodeConfig(AgentRunConfig):
     checkpoint_every: int = param(
         0, "steps between checkpoints (0 = at every evaluation point); a final one is always written",
         minimum=0)
+
+
+@dataclass(frozen=True)
+class QtTrainerNodeConfig:
+    """qt_trainer_node's own parameters (QT's hyper-parameters: QTConfig or ComcactQTConfig, by
+    architecture)."""
+
+    architecture: str = param(
+        "comcact", "QT layout and defaults: comcact = appendix B (LSTM 64-64, dense 32), comper = Table 37 "
+        "(LSTM 64-32-32, dense 18)", choices=("comcact", "comper"))
+    memory_node: str = param("memory_node", "name (or /namespace/name) of the memory node whose reduce_begin / "
+                                            "reduce_commit services are called")
+    reduce_batch: int = param(0, "sets popped from TM per reduction; 0 = the memory node's reduce_batch",
+                              thesis="50,000 for COMCACT (appendix B), 1,000 for COMPER (Table 34)", minimum=0)
+    period_s: float = param(0.0, "if > 0, also reduce on a timer every period_s seconds (0 = only on ~/reduce "
+                                 "requests)", minimum=0.0)
+    call_timeout_s: float = param(60.0, "seconds to wait for each memory service answer", minimum=0.0)
+    num_threads: int = param(0, "torch intra-op threads set at start when > 0 (standalone: default 1 when 0)",
+                             minimum=0)

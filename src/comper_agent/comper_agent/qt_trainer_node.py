@@ -23,7 +23,6 @@ import threading
 import time
 
 import numpy as np
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
@@ -36,7 +35,8 @@ from comper_msgs_py.convert import array_to_numpy, numpy_to_array, numpy_to_seq,
 from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 from comper_msgs_py.service_client import ServiceError
-from .core.config import ComcactQTConfig, QTConfig
+from .core.config import QT_CONFIGS
+from .node_config import QtTrainerNodeConfig
 
 __all__ = ["QtTrainerNode", "QT_MODEL_QOS", "qt_to_msg", "msg_to_qt", "main"]
 
@@ -80,10 +80,6 @@ def msg_to_qt(msg: QTModelMsg, device: str | None = "cpu"):
         train_loss=float(msg.train_loss), train_sets=int(msg.train_sets), device=device)
 
 
-def _desc(text: str) -> ParameterDescriptor:
-    return ParameterDescriptor(description=text, read_only=True)
-
-
 # ------------------------------------------------------------------------------- node
 class QtTrainerNode(Node):
     """QT trainer. ``node_kwargs`` go to rclpy's Node (context, parameter_overrides, ...), so a
@@ -91,32 +87,15 @@ class QtTrainerNode(Node):
 
     def __init__(self, node_name: str = "qt_trainer_node", **node_kwargs):
         super().__init__(node_name, **node_kwargs)
-        arch = self.declare_parameter(
-            "architecture", "comcact",
-            _desc("QT layout and defaults: comcact = Appendix B (LSTM 64-64, dense 32), comper = "
-                  "Table 37 (LSTM 64-32-32, dense 18). One of: comcact, comper.")).value
-        if arch not in ("comcact", "comper"):
-            raise ValueError(f"architecture must be comcact or comper, got {arch!r}")
-        cls = ComcactQTConfig if arch == "comcact" else QTConfig
-        self.qt_config = declare_config(self, cls, overrides={"qt_architecture": arch})
+        self.p = p = declare_config(self, QtTrainerNodeConfig)
+        arch = p.architecture
+        self.qt_config = declare_config(self, QT_CONFIGS[arch], overrides={"qt_architecture": arch})
         if self.qt_config.qt_architecture != arch:
             raise ValueError(f"qt_architecture:={self.qt_config.qt_architecture} contradicts "
                              f"architecture:={arch}; set architecture only")
-        p = self.declare_parameter
-        self.memory_name = p("memory_node", "memory_node",
-                             _desc("name (or /namespace/name) of the memory node whose reduce_begin / "
-                                   "reduce_commit services are called")).value.strip("/")
-        self.reduce_batch = int(p("reduce_batch", 0, _desc(
-            "sets popped from TM per reduction; 0 = the memory node's reduce_batch. "
-            "Thesis: 50,000 for COMCACT (appendix B), 1,000 for COMPER (Table 34)")).value)
-        self.period_s = float(p("period_s", 0.0, _desc(
-            "if > 0, also reduce on a timer every period_s seconds (0 = only on ~/reduce requests)")).value)
-        self.call_timeout_s = float(p("call_timeout_s", 60.0, _desc(
-            "seconds to wait for each memory service answer")).value)
-        self.num_threads = int(p("num_threads", 0, _desc(
-            "torch intra-op threads set at start when > 0 (standalone: default 1 when 0)")).value)
-        if self.reduce_batch < 0:
-            raise ValueError("reduce_batch must be >= 0")
+        self.memory_name = p.memory_node.strip("/")
+        self.reduce_batch, self.period_s = p.reduce_batch, p.period_s
+        self.call_timeout_s, self.num_threads = p.call_timeout_s, p.num_threads
 
         from comper_memory.core import transition_keys
 

@@ -1,5 +1,8 @@
 """Crash-safe rosbag2 writing for the recorder (pure: rosbags only, no rclpy).
 
+Size: the writer, its metadata and the repair of a bag cut by a crash belong together (repair
+reads back what the writer's split protocol leaves); the recorder's config and topic parsing follow.
+
 A bag is a rosbag2 directory (``metadata.yaml`` + storage files) written as a sequence of
 **split files**, exactly like rosbag2's ``max_bagfile_size`` / ``max_bagfile_duration`` splitting:
 

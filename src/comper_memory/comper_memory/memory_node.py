@@ -1,7 +1,10 @@
 """memory_node: the compact memory as a ROS 2 node (thin: translation between messages and the core).
 
+Size: one translation per service (seven), each with its refusal paths, plus the snapshot path
+confinement and the stats timer; the memory itself is comper_memory.core.
+
     ros2 run comper_memory memory_node
-    ros2 run comper_memory memory_node --ros-args -p storage_dir:=/tmp/mem -p delta:=1e-4
+    ros2 run comper_memory memory_node --ros-args -p storage_dir:=memory_store -p delta:=1e-4
     ros2 run comper_memory memory_node --ros-args --params-file src/comper_memory/config/memory.yaml
 
 Services (private, relative to the node, e.g. ``/memory_node/store``):

@@ -16,7 +16,7 @@ from comper_msgs_py.params import param
 
 __all__ = ["QTConfig", "ComcactQTConfig", "ComcactConfig", "DDPGConfig", "ComperConfig", "ALL_CONFIGS",
            "parameter_table_markdown",
-           "DQNConfig", "qt_config_for", "COMPER_PROFILES", "resolve_profile", "profile_table_markdown"]
+           "DQNConfig", "qt_config_for", "QT_CONFIGS", "COMPER_PROFILES", "resolve_profile", "profile_table_markdown"]
 
 _NEXT_VALUE_DEVIATION = (
     "thesis text stores Q(s_t, a_t) with tau_t (q_sa), which makes r + gamma QT(tau) a target "
@@ -96,11 +96,16 @@ class ComcactQTConfig(QTConfig):
                                thesis="not given (Keras fit default 32)", minimum=1)
 
 
+QT_CONFIGS = {"comper": QTConfig, "comcact": ComcactQTConfig}   #: QT architecture -> its config class
+
+
 def qt_config_for(architecture: str, values: dict | None = None):
-    """The QT config class for an architecture name, built from `values` (validated)."""
+    """The QT config of an architecture name (comper: Table 37, comcact: appendix B), built from
+    `values` (validated; unknown names ignored)."""
     from comper_msgs_py.params import config_from_dict
-    cls = {"comper": QTConfig, "comcact": ComcactQTConfig}[architecture]
-    return config_from_dict(cls, values, ignore_unknown=True)
+    if architecture not in QT_CONFIGS:
+        raise ValueError(f"QT architecture must be one of {', '.join(QT_CONFIGS)}, got {architecture!r}")
+    return config_from_dict(QT_CONFIGS[architecture], values, ignore_unknown=True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -126,7 +131,7 @@ class ComcactConfig:
         "plain MLPs, as Stable-Baselines3 / CleanRL DDPG)", thesis="yes (appendix B)",
         deviation="off: with batch norm our DDPG solved InvertedPendulum-v4 (>= 950) by 20,000 steps in 0 of 3 "
         "seeds (two collapsed to a saturated policy), without it in 3 of 3, as Stable-Baselines3 "
-        "DDPG (no batch norm) in 3 of 3 (docs/comcact.md, session 2); -p batch_norm:=true is appendix B")
+        "DDPG (no batch norm) in 3 of 3 (docs/comcact.md, Decisions); -p batch_norm:=true is appendix B")
     critic_action_input: str = param(
         "second_hidden", "where the action enters the critic: second_hidden = concatenated to the "
         "(batch-normalised) first hidden layer's output, the input of the second hidden layer "

@@ -3,10 +3,13 @@
 QT maps a similar-transition set's representative key (and, with ``qt_sequence_length`` L > 1,
 the set's recent value labels) to a prediction of the set's next value label.
 
+Size: the network, its training and prediction, scaling, and the array form the QTModel message
+carries are one model's parts; the long docstrings state the input layout they must agree on.
+
 Inputs and targets
 ------------------
 * keys [M, key_dim] float32, built by a ``key_fn`` from the representative transitions (default
-  :func:`default_key_fn`; ``comper_memory.core.transition_keys`` can be passed instead).
+  :func:`default_key_fn`, which is ``comper_memory.core.transition_keys``: the memory's own keys).
 * label histories are flat float32 arrays (all sets' histories concatenated, oldest first) plus
   ``history_lengths`` [M] (the layout of ``comper_msgs/ReductionSets``).
 * :meth:`QTModel.fit` trains on (input built from everything *before* each set's newest label,
@@ -38,34 +41,19 @@ import numpy as np
 import torch
 from torch import nn
 
-from comper_msgs_py.params import config_from_dict, config_to_dict
+from comper_memory.core.keys import transition_keys
+from comper_msgs_py.params import config_to_dict
 
-from .config import ComcactQTConfig, QTConfig
+from .config import QTConfig, qt_config_for
 
 __all__ = ["QTNetwork", "QTModel", "default_key_fn", "reduction_predictor", "history_windows",
            "newest_labels", "QT_FORMAT_VERSION"]
 
+#: the key of each transition: the memory's own key builder (concat(s, a, r, s'), frames scaled by 1/255)
+default_key_fn = transition_keys
+
 QT_FORMAT_VERSION = 1
 _STD_FLOOR = 1e-6
-
-
-def default_key_fn(transitions) -> np.ndarray:
-    """Key of each transition: concat(s, a, r, s') as float32 [N, key_dim].
-
-    uint8 observations (Atari frames) are scaled once by 1/255; float observations are used raw.
-    Discrete actions become one column holding the action index. Replaceable by
-    ``comper_memory.core.transition_keys`` (same signature).
-    """
-    n = len(transitions)
-
-    def obs(x: np.ndarray) -> np.ndarray:
-        x = x.reshape(n, -1)
-        return x.astype(np.float32) * np.float32(1.0 / 255.0) if x.dtype == np.uint8 else x.astype(np.float32, copy=False)
-
-    return np.concatenate([obs(transitions.states),
-                           np.asarray(transitions.actions, dtype=np.float32).reshape(n, -1),
-                           np.asarray(transitions.rewards, dtype=np.float32).reshape(n, 1),
-                           obs(transitions.next_states)], axis=1)
 
 
 def _offsets(history_lengths: np.ndarray) -> np.ndarray:
@@ -403,9 +391,7 @@ class QTModel:
         values = dict(config)
         if device is not None:
             values["qt_device"] = device
-        arch = architecture or values.get("qt_architecture", "comper")
-        cfg_cls = ComcactQTConfig if arch == "comcact" else QTConfig
-        cfg = config_from_dict(cfg_cls, values, ignore_unknown=True)
+        cfg = qt_config_for(architecture or values.get("qt_architecture", "comper"), values)
         if sequence_length is not None and sequence_length != cfg.qt_sequence_length:
             raise ValueError("sequence_length disagrees with the config")
         model = cls(cfg, key_dim=int(key_size))
@@ -464,8 +450,7 @@ class QTModel:
         values = dict(state["config"])
         if device is not None:
             values["qt_device"] = device
-        cfg_cls = ComcactQTConfig if values.get("qt_architecture") == "comcact" else QTConfig
-        model = cls(config_from_dict(cfg_cls, values, ignore_unknown=True))
+        model = cls(qt_config_for(values.get("qt_architecture", "comper"), values))
         model.load_state_dict(state)
         return model
 

@@ -23,10 +23,18 @@ linearly with the number of identities.
 """
 from __future__ import annotations
 
-import faiss
 import numpy as np
 
 from .similarity import U32, KeySource, SimilarityIndex
+
+faiss = None   # imported by the first ExactIndex: the default grid engine, and clients, never load it
+
+
+def _load_faiss() -> None:
+    global faiss
+    if faiss is None:
+        import faiss as module
+        faiss = module
 
 __all__ = ["ExactIndex"]
 
@@ -38,6 +46,7 @@ class ExactIndex(SimilarityIndex):
     def __init__(self, key_dim: int, delta: float, source: KeySource, *, projection_dim: int = 8,
                  min_train: int = 2048, list_size: int = 256, max_lists: int = 4096,
                  rebuild_growth: float = 4.0, seed: int = 0):
+        _load_faiss()
         super().__init__(key_dim, delta, source)
         self.min_train = int(min_train)
         self.list_size = int(list_size)
