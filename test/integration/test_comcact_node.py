@@ -41,7 +41,7 @@ def test_embedded_bringup_trains_publishes_and_stops_cleanly_on_ctrl_c(launch, r
     ros_node.create_subscription(EpisodeSummary, f"/{name}/episodes", episodes.append, SUMMARY_QOS)
     proc = launch("comper_agent", "comcact_node",
                   *_args(tmp_path, "emb", "-p", "total_steps:=100000", "-p", "eval_every:=150",
-                         "-p", "eval_episodes:=2", "-p", "reduce_every:=5"),
+                         "-p", "eval_episodes:=2", "-p", "reduce_every:=5", "-p", "diagnostics_every:=20"),
                   "-r", f"comcact_node:__node:={name}", name=name)
     deadline = time.monotonic() + 180
     while time.monotonic() < deadline and proc.alive():
@@ -68,6 +68,11 @@ def test_embedded_bringup_trains_publishes_and_stops_cleanly_on_ctrl_c(launch, r
                                      "critic_opt", "noise"}
     timers = run_io.MetricsLog.read(run / "metrics.jsonl", "timers")[-1]
     assert {"sim", "memory", "qt", "learner"} <= set(timers["phases"])
+    diag = run_io.MetricsLog.read(run / "metrics.jsonl", "qt_diagnostics")   # every 20 updates once QT exists
+    assert diag and all(d["update"] % 20 == 0 and d["qt_version"] >= 1 for d in diag)
+    for d in diag:
+        assert d["qt_target_rmse"] >= 0 and d["critic_td_rmse"] >= 0 and d["set_size_mean"] >= 1
+        assert 0 <= d["multi_member_fraction"] <= 1 and 0 <= d["label_age_mean"] <= d["step"]
 
 
 def test_external_bringup_uses_nodes_started_with_ros2_run(launch, tmp_path):

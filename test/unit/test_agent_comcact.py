@@ -169,3 +169,73 @@ def test_replay_buffer_fifo_and_uniform_sampling():
     s = buf.sample(64)
     assert len(s) == 64 and s.actions.shape == (64, ACT) and s.terminated.dtype == bool
     s.validate()
+
+
+def test_qt_diagnostics_measure_the_qt_target_against_the_ddpg_target():
+    """qt_diagnostics on a fixed batch against a reference computed here: QT equal to Q'(s', mu'(s'))
+    has no error; QT shifted by 1 is off by gamma on every non-terminal row (0 on terminal ones)."""
+    lrn = learner()
+    term = np.zeros(64, bool)
+    term[:16] = True
+    b = batch(terminated=term)
+    s2 = torch.as_tensor(b.next_states)
+    with torch.no_grad():
+        q2 = lrn.critic_target(s2, lrn.actor_target(s2)).numpy()
+        q = lrn.critic(torch.as_tensor(b.states), torch.as_tensor(b.actions)).numpy()
+    y = b.rewards + 0.99 * (1 - term) * q2
+    exact = lrn.qt_diagnostics(b, q2)
+    assert exact["qt_target_rmse"] == pytest.approx(0.0, abs=1e-6) and exact["qt_bias"] == pytest.approx(0.0, abs=1e-6)
+    assert exact["critic_td_rmse"] == pytest.approx(float(np.sqrt(np.mean((q - y) ** 2))), rel=1e-5)
+    off = lrn.qt_diagnostics(b, q2 + 1.0)
+    assert off["qt_target_rmse"] == pytest.approx(0.99 * np.sqrt(48 / 64), rel=1e-5)
+    assert off["qt_bias"] == pytest.approx(1.0, rel=1e-5)
+    before = copy.deepcopy(lrn.critic.state_dict())
+    lrn.qt_diagnostics(b, q2)                       # measures only: no parameter moves
+    assert all(torch.equal(before[k], v) for k, v in lrn.critic.state_dict().items())
+
+
+def test_twin_critic_bootstraps_from_the_minimum_and_trains_both_heads():
+    lrn = learner(DDPGConfig, critic="twin")
+    b = batch()
+    s2 = torch.as_tensor(b.next_states)
+    with torch.no_grad():
+        a2 = lrn.actor_target(s2)
+        q1, q2 = lrn.critic_target.q1(s2, a2).numpy(), lrn.critic_target.q2(s2, a2).numpy()
+    assert not np.allclose(q1, q2)                                  # two independent initialisations
+    np.testing.assert_allclose(lrn.td_targets(b).numpy(), b.rewards + 0.99 * np.minimum(q1, q2), rtol=1e-5,
+                               atol=1e-6)
+    before = copy.deepcopy(lrn.critic.state_dict())
+    lrn.update(b)
+    after = lrn.critic.state_dict()
+    for head in ("q1", "q2"):                                       # both heads take the critic step
+        assert not torch.equal(before[f"{head}.fc1.weight"], after[f"{head}.fc1.weight"])
+    single = learner(DDPGConfig)
+    assert set(single.critic.state_dict()) == {k.split(".", 1)[1] for k in before if k.startswith("q1.")}
+
+
+def _qt_step_change(weight, gate=False, shift=0.0):
+    """Parameter change of one QT step after one shared DDPG step (the Adam state both steps share)."""
+    lrn = learner(qt_step_weight=weight, qt_step_gate=gate)
+    b = batch(seed=3)
+    lrn.update(b)
+    s2 = torch.as_tensor(b.next_states)
+    with torch.no_grad():
+        q2 = lrn.critic_target(s2, lrn.actor_target(s2)).numpy()
+    before = torch.cat([p.detach().flatten().clone() for p in lrn.critic.parameters()])
+    out = lrn.qt_critic_step(b, q2 + shift)
+    after = torch.cat([p.detach().flatten() for p in lrn.critic.parameters()])
+    return float((after - before).norm()), out, lrn
+
+
+def test_qt_step_weight_makes_the_qt_step_smaller():
+    full, _, _ = _qt_step_change(1.0, shift=5.0)
+    quarter, _, _ = _qt_step_change(0.25, shift=5.0)
+    none, out, lrn = _qt_step_change(0.0, shift=5.0)
+    assert 0.0 < quarter < full and none == 0.0 and lrn.qt_steps == 0 and "qt_critic_loss" not in out
+
+
+def test_qt_step_gate_skips_a_qt_target_worse_than_the_critic_s_own():
+    close, out, _ = _qt_step_change(1.0, gate=True, shift=0.0)      # QT = the DDPG target: the step is taken
+    assert close > 0.0 and out["qt_gated"] == 0.0
+    far, out, lrn = _qt_step_change(1.0, gate=True, shift=100.0)    # far off: skipped, nothing moves
+    assert far == 0.0 and out["qt_gated"] == 1.0 and lrn.qt_gated == 1 and lrn.qt_steps == 0

@@ -238,9 +238,9 @@ class ComcactNode(AgentNode):
             rows, self.pending = self.pending, []
             self._store(rows_to_transitions(rows, self.episodes, self.run_id))
 
-    def _sample(self) -> Transitions | None:
-        """The next update batch: from RTM (prefetched up to the next reduction, MemoryLink.next_batch),
-        from TM while RTM is empty (Algorithm 8 lines 14-17)."""
+    def _sample(self):
+        """(batch, set sizes) for the next update: from RTM (prefetched up to the next reduction,
+        MemoryLink.next_batch), from TM while RTM is empty (Algorithm 8 lines 14-17)."""
         k = self.cfg.batch_size
         source = "rtm"
         if self.rtm_size <= 1 and not self.mem.prefetched:
@@ -259,7 +259,7 @@ class ComcactNode(AgentNode):
         if got is None:      # RTM shrank (evictions): refresh its size next time
             self.mem.rtm_size = 0
             return None
-        return got[0]
+        return got
 
     def _reduce(self) -> None:
         self._flush()               # every stored transition takes part in the reduction
@@ -275,9 +275,10 @@ class ComcactNode(AgentNode):
     def _train_step(self) -> None:
         if self.comcact:
             self.mem.collect(wait=False)      # reduce_overlap: a reduction that has answered
-            batch = self._sample()
-            if batch is None:
+            got = self._sample()
+            if got is None:
                 return
+            batch, counts = got
             with self.ptimers("learner"):
                 self.last_update = self.learner.update(batch)
             self.since_reduce += 1
@@ -293,6 +294,9 @@ class ComcactNode(AgentNode):
                     from comper_memory.core import transition_keys
                     with self.ptimers("qt_predict"):
                         targets = qt.predict_transitions(batch, transition_keys)
+            p = self.p
+            if targets is not None and p.diagnostics_every and self.update_count % p.diagnostics_every == 0:
+                self._qt_diagnostics(batch, counts, targets)
             with self.ptimers("learner"):
                 if targets is not None:
                     self.last_update.update(self.learner.qt_critic_step(batch, targets))
@@ -305,6 +309,24 @@ class ComcactNode(AgentNode):
         self.update_count += 1
         if self.update_count % 250 == 0:
             self.scalars.scalars(self.last_update, self.step, prefix="train/")
+
+    def _qt_diagnostics(self, batch: Transitions, counts: np.ndarray, targets: np.ndarray) -> None:
+        """One 'qt_diagnostics' record (after the DDPG step on the batch, before the QT step): the QT
+        target's distance to the DDPG target, the critic's TD error, the label age (steps since the
+        sampled entries' representatives were stored: COMCACT never relabels, so for a one-member
+        set that is its label's age) and the sampled set sizes (uniform RTM draws, so their
+        fraction with more than one member estimates RTM's)."""
+        with self.ptimers("learner"):
+            rec = self.learner.qt_diagnostics(batch, targets)
+        age = self.step - np.asarray(batch.steps, np.float64) if batch.steps.size else np.zeros(0)
+        cnt = np.asarray(counts, np.float64)
+        rec.update(label_age_mean=float(age.mean()) if age.size else float("nan"),
+                   label_age_max=float(age.max()) if age.size else float("nan"),
+                   set_size_mean=float(cnt.mean()) if cnt.size else float("nan"),
+                   multi_member_fraction=float((cnt > 1).mean()) if cnt.size else float("nan"),
+                   qt_version=int(self.mem.qt_version), rtm_size=int(self.rtm_size))
+        self.metrics.write("qt_diagnostics", step=self.step, update=self.update_count, **rec)
+        self.scalars.scalars({k: v for k, v in rec.items() if isinstance(v, float)}, self.step, prefix="qt/")
 
     # ------------------------------------------------------------------------------ evaluation
     def _eval_action(self, obs):

@@ -198,6 +198,10 @@ class ComcactNodeConfig(AgentRunConfig):
     checkpoint_every: int = param(
         0, "steps between checkpoints (0 = at every evaluation point); a final one is always written",
         minimum=0)
+    diagnostics_every: int = param(
+        250, "comcact: updates between 'qt_diagnostics' records in metrics.jsonl (and TensorBoard qt/...): the "
+        "QT step's target against the DDPG target on the update's batch, the critic's own TD error, the "
+        "sampled entries' label age and set sizes (docs/comcact.md); 0 = off", minimum=0)
 
 
 @dataclass(frozen=True)

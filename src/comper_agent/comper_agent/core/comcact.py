@@ -26,7 +26,7 @@ from torch import nn
 from comper_msgs_py.arrays import Transitions
 
 from .config import ComcactConfig
-from .networks import Actor, Critic, soft_update
+from .networks import Actor, Critic, TwinCritic, soft_update
 from .noise import OUNoise
 
 __all__ = ["ComcactLearner"]
@@ -44,8 +44,9 @@ class ComcactLearner:
             torch.manual_seed(c.seed)
             self.actor = Actor(obs_dim, self.action_low, self.action_high, c.actor_hidden,
                                c.actor_final_init, c.batch_norm).to(self.device)
-            self.critic = Critic(obs_dim, self.action_dim, c.critic_hidden, c.critic_final_init,
-                                 c.critic_action_input, c.batch_norm).to(self.device)
+            critic_cls = TwinCritic if c.critic == "twin" else Critic
+            self.critic = critic_cls(obs_dim, self.action_dim, c.critic_hidden, c.critic_final_init,
+                                     c.critic_action_input, c.batch_norm).to(self.device)
         self.actor_target = copy.deepcopy(self.actor)
         self.critic_target = copy.deepcopy(self.critic)
         for net in (self.actor, self.critic, self.actor_target, self.critic_target):
@@ -59,6 +60,7 @@ class ComcactLearner:
         self.noise = OUNoise(self.action_dim, c.ou_theta, c.ou_sigma, dt=c.ou_dt, seed=c.seed)
         self.updates = 0      # DDPG updates done
         self.qt_steps = 0     # extra critic steps towards QT targets done
+        self.qt_gated = 0     # QT steps skipped by qt_step_gate
 
     # ------------------------------------------------------------------ helpers
     def _t(self, x, dtype=torch.float32) -> torch.Tensor:
@@ -113,14 +115,15 @@ class ComcactLearner:
         if self.config.qt_label == "q_sa":
             v = self.critic(s, a)
         else:
-            v = self.critic(s2, self.actor(s2)) * not_done
+            v = self.critic.pessimistic(s2, self.actor(s2)) * not_done
         return v.cpu().numpy().astype(np.float32)
 
     @torch.no_grad()
     def td_targets(self, batch: Transitions) -> torch.Tensor:
-        """DDPG target r + gamma (1 - terminated) Q'(s', mu'(s')) (target nets, eval mode)."""
+        """DDPG target r + gamma (1 - terminated) Q'(s', mu'(s')) (target nets, eval mode; twin: the
+        minimum of the two target critics)."""
         _, _, r, s2, not_done = self._tensors(batch)
-        q2 = self.critic_target(s2, self.actor_target(s2))
+        q2 = self.critic_target.pessimistic(s2, self.actor_target(s2))
         return r + self.config.gamma * not_done * q2
 
     @torch.no_grad()
@@ -149,8 +152,9 @@ class ComcactLearner:
         s, a, _, _, _ = self._tensors(batch)
         y = self.td_targets(batch)
         self.critic.train()
-        q = self.critic(s, a)
-        critic_loss = torch.mean((q - y) ** 2)
+        qs = self.critic.all_heads(s, a)
+        q = qs[0]
+        critic_loss = sum(torch.mean((qi - y) ** 2) for qi in qs)
         self.critic_opt.zero_grad(set_to_none=True)
         critic_loss.backward()
         self._clip(self.critic.parameters(), c.grad_clip)
@@ -174,12 +178,14 @@ class ComcactLearner:
         self.actor.eval()
         self.critic.eval()
         self.updates += 1
-        return {"critic_loss": float(critic_loss.detach()), "actor_loss": float(actor_loss.detach()),
+        return {"critic_loss": float(critic_loss.detach()) / len(qs), "actor_loss": float(actor_loss.detach()),
                 "q_mean": float(q.detach().mean()), "target_mean": float(y.mean())}
 
     def qt_critic_step(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
         """COMCACT's extra critic step (Algorithm 8 lines 29-34): minimise
-        (r + gamma (1 - terminated) QT(tau) - Q(s, a))^2 with the critic's optimiser."""
+        qt_step_weight x (r + gamma (1 - terminated) QT(tau) - Q(s, a))^2 with the critic's optimiser
+        (every head of a twin critic). qt_step_gate: no step when the QT target is farther from the
+        DDPG target than the critic's own TD error on this batch."""
         if self.config.variant != "comcact":
             raise RuntimeError("qt_critic_step is COMCACT's; the ddpg variant has the QT step off")
         c = self.config
@@ -188,16 +194,45 @@ class ComcactLearner:
         if qt.shape[0] != s.shape[0]:
             raise ValueError(f"{qt.shape[0]} QT targets for {s.shape[0]} transitions")
         y = r + c.gamma * not_done * qt
+        if c.qt_step_weight == 0.0:
+            return {"qt_target_mean": float(y.mean())}
+        if c.qt_step_gate:
+            d = self.qt_diagnostics(batch, qt_targets)
+            if d["qt_target_rmse"] > d["critic_td_rmse"]:
+                self.qt_gated += 1
+                return {"qt_target_mean": float(y.mean()), "qt_gated": 1.0}
         self.critic.train()
-        q = self.critic(s, a)
-        loss = torch.mean((q - y) ** 2)
+        qs = self.critic.all_heads(s, a)
+        loss = sum(torch.mean((qi - y) ** 2) for qi in qs)
         self.critic_opt.zero_grad(set_to_none=True)
-        loss.backward()
+        (loss * c.qt_step_weight).backward()
         self._clip(self.critic.parameters(), c.grad_clip)
         self.critic_opt.step()
         self.critic.eval()
         self.qt_steps += 1
-        return {"qt_critic_loss": float(loss.detach()), "qt_target_mean": float(y.mean())}
+        return {"qt_critic_loss": float(loss.detach()) / len(qs), "qt_target_mean": float(y.mean()),
+                **({"qt_gated": 0.0} if c.qt_step_gate else {})}
+
+    @torch.no_grad()
+    def qt_diagnostics(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
+        """How far the QT step's target is from the DDPG step's on this batch (no update).
+
+        qt_target_rmse: RMS of (r + gamma (1 - terminated) QT(tau)) - (r + gamma (1 - terminated)
+        Q'(s', mu'(s'))), i.e. gamma (1 - terminated) |QT(tau) - Q'(s', mu'(s'))|;
+        critic_td_rmse: RMS of Q(s, a) - the DDPG target (the critic's own TD error, before any
+        update on the batch); qt_bias: mean of QT(tau) - Q'(s', mu'(s')) over non-terminal rows."""
+        c = self.config
+        s, a, r, _, not_done = self._tensors(batch)
+        y = self.td_targets(batch)
+        qt = self._t(qt_targets).reshape(-1)
+        y_qt = r + c.gamma * not_done * qt
+        self.critic.eval()
+        q = self.critic(s, a)
+        live = not_done > 0
+        gap = (y_qt - y)[live] / c.gamma
+        return {"qt_target_rmse": float(torch.sqrt(torch.mean((y_qt - y) ** 2))),
+                "critic_td_rmse": float(torch.sqrt(torch.mean((q - y) ** 2))),
+                "qt_bias": float(gap.mean()) if gap.numel() else 0.0}
 
     def soft_update(self, tau: float | None = None) -> None:
         """Polyak update of both target networks (parameters and batch-norm running stats)."""
@@ -211,7 +246,8 @@ class ComcactLearner:
                 "actor_target": self.actor_target.state_dict(),
                 "critic_target": self.critic_target.state_dict(),
                 "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
-                "noise": self.noise.state_dict(), "updates": self.updates, "qt_steps": self.qt_steps}
+                "noise": self.noise.state_dict(), "updates": self.updates, "qt_steps": self.qt_steps,
+                "qt_gated": self.qt_gated}
 
     def load_state_dict(self, d: dict) -> None:
         self.actor.load_state_dict(d["actor"])
@@ -222,3 +258,4 @@ class ComcactLearner:
         self.critic_opt.load_state_dict(d["critic_opt"])
         self.noise.load_state_dict(d["noise"])
         self.updates, self.qt_steps = int(d["updates"]), int(d["qt_steps"])
+        self.qt_gated = int(d.get("qt_gated", 0))

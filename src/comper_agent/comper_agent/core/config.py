@@ -132,6 +132,23 @@ class ComcactConfig:
         deviation="off: with batch norm our DDPG solved InvertedPendulum-v4 (>= 950) by 20,000 steps in 0 of 3 "
         "seeds (two collapsed to a saturated policy), without it in 3 of 3, as Stable-Baselines3 "
         "DDPG (no batch norm) in 3 of 3 (docs/comcact.md, Decisions); -p batch_norm:=true is appendix B")
+    critic: str = param(
+        "single", "single = one critic (DDPG); twin = two critics trained on the same targets, which bootstrap "
+        "from their minimum, the actor following the first (TD3's clipped double-Q, Fujimoto et al. 2018; "
+        "no delayed actor, no target smoothing); for both variants", thesis="single (appendix B)",
+        choices=("single", "twin"),
+        deviation="twin counters the critic's overestimation (the DDPG baseline's mean Q on "
+        "InvertedDoublePendulum-v4 exceeded the largest possible discounted return); not measured yet")
+    qt_step_weight: float = param(
+        1.0, "comcact: weight of the QT step's loss (its gradient is scaled; the step shares the critic's Adam "
+        "state, so a weight below 1 makes it smaller relative to the DDPG steps); 0 = no QT step",
+        thesis="1 (Algorithm 8 lines 29-34: a full second critic step)", minimum=0.0, maximum=1.0,
+        deviation="< 1 damps the pull towards stale QT targets (method.md 6.4); not measured yet")
+    qt_step_gate: bool = param(
+        False, "comcact: skip the QT step on a batch where the QT target is farther from the DDPG target (RMS over "
+        "the batch) than the critic's own TD error", thesis="off (every update takes the QT step)",
+        deviation="on = the QT step only where it is closer to the DDPG target than the critic already is; "
+        "not measured yet")
     critic_action_input: str = param(
         "second_hidden", "where the action enters the critic: second_hidden = concatenated to the "
         "(batch-normalised) first hidden layer's output, the input of the second hidden layer "
