@@ -8,7 +8,9 @@ time. When all runs are done (or with ``--report-only`` on an existing --out fol
 * ``<out>/table.md`` + ``<out>/table.json``: per game and variant, the mean across seeds (with a
   bootstrap 95% confidence interval of that mean) of the run's mean of the last 10 training episodes
   (3 for runs with fewer than 25 episodes) and of the three terciles (mean of the last 5 (or 3)
-  episodes at the end of each third of the episodes), the thesis's Tables 23/25/30 layout, plus
+  episodes ended by each third of the 100,000-frame budget; recomputed here from every run's episode
+  returns and frames with comper_agent.core.protocol, so runs merged with --include use one
+  definition whatever their summary.json says), the thesis's Tables 23/25/30 layout, plus
   frames, episodes, wall time and steps/s; with ``--reference`` (atari_constant_actions.py's JSON)
   the random-play and best-constant-action rows of each game; with ``--policy``
   (atari_policy_check.py's JSON) how many runs' final greedy action is the initial network's in
@@ -36,6 +38,7 @@ import time
 import warnings
 from pathlib import Path
 
+from comper_agent.core.protocol import protocol_summary
 from comper_agent.run_io import MetricsLog
 from learning_bench import claim_domain, release_domain   # one claim registry for every benchmark run
 
@@ -194,7 +197,8 @@ def report(args) -> None:
             if games:
                 lines += reference_lines(args.reference, [games[-1]])
             games.append(game)
-        pr = [s["protocol"] for s in ss]
+        pr = [protocol_summary(s["episode_returns"], s["episode_frames"], args.frames) if s.get("episode_frames")
+              else s["protocol"] for s in ss]
         star = "*" if any(p["last_k"] == 3 for p in pr) else ""
         entry = {"game": game, "variant": alg, "seeds": [s["seed"] for s in ss],
                  "last": [p["last_mean"] for p in pr], "last_k": [p["last_k"] for p in pr],
