@@ -48,6 +48,8 @@ from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.convert import batch_to_transitions, numpy_to_seq, seq_to_numpy, transitions_to_batch
 from comper_msgs_py.service_client import PendingCall, ServiceClient, ServiceRefused
 
+from .core.results import ReductionLease
+
 __all__ = ["MemoryClient", "ReductionClient", "MemoryServiceError", "StoreReply", "ReductionSets",
            "ReduceReply", "CommitReply", "SOURCES", "STATS_FIELDS", "stats_to_dict"]
 
@@ -77,24 +79,8 @@ class StoreReply:
     wal_sequence: int          # durable operation number (0 when the node has no storage_dir)
 
 
-@dataclass
-class ReductionSets:
-    """Phase 1 of a two-phase reduction (the sets leased to a QT trainer)."""
-    reduction_id: int
-    identity_ids: np.ndarray     # uint64 [M]
-    representatives: Transitions  # [M]; value_labels = newest label of each set
-    label_history: np.ndarray    # float32, concatenated histories, oldest first
-    history_lengths: np.ndarray  # uint32 [M]
-    counts: np.ndarray           # uint32 [M]
-
-    def __len__(self) -> int:
-        return int(self.identity_ids.shape[0])
-
-    def histories(self) -> list[np.ndarray]:
-        """One float32 array per set, oldest label first."""
-        if not len(self):
-            return []
-        return np.split(self.label_history, np.cumsum(self.history_lengths.astype(np.int64))[:-1])
+#: what reduce_begin returns: the memory core's own lease type (one definition)
+ReductionSets = ReductionLease
 
 
 @dataclass

@@ -1,6 +1,7 @@
 """What the memory's operations return, and the errors they raise (no state here)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,19 +39,24 @@ class SampleResult:
 
 @dataclass
 class ReductionLease:
+    """Phase 1 of a two-phase reduction: the sets leased from TM (in the memory, and as a client
+    receives them from ``reduce_begin``: ids uint64 and lengths uint32 there, no expiry)."""
     reduction_id: int
     identity_ids: np.ndarray        # int64 [k], TM order (oldest first)
     representatives: Transitions    # value_labels = newest label of each set
     label_history: np.ndarray       # float32 [sum(history_lengths)], per set oldest -> newest
     history_lengths: np.ndarray     # int64 [k]
     counts: np.ndarray              # int64 [k]
-    expires_at: float               # clock() time after which the lease is void
+    expires_at: float = math.inf    # clock() time after which the lease is void (kept by the memory)
 
     def __len__(self) -> int:
         return int(self.identity_ids.shape[0])
 
     def histories(self) -> list[np.ndarray]:
-        return np.split(self.label_history, np.cumsum(self.history_lengths)[:-1]) if len(self) else []
+        """One float32 array per set, oldest label first."""
+        if not len(self):
+            return []
+        return np.split(self.label_history, np.cumsum(np.asarray(self.history_lengths, np.int64))[:-1])
 
 
 @dataclass
