@@ -46,10 +46,10 @@ import os
 import sys
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
@@ -60,13 +60,13 @@ from comper_msgs.srv import GetStats, Reduce, ReduceBegin, ReduceCommit, Sample,
 from comper_msgs_py.arrays import TransitionError
 from comper_msgs_py.blas import set_numpy_blas_threads
 from comper_msgs_py.convert import batch_to_transitions, numpy_to_seq, seq_to_numpy, transitions_to_batch
-from comper_msgs_py.params import ConfigError
+from comper_msgs_py.params import ConfigError, param
 from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 
 from .core import CompactMemory, MemoryConfig, MemoryInputError, SnapshotError
 
-__all__ = ["MemoryNode", "main", "STATS_QOS", "SERVICE_QOS", "SOURCES", "stats_to_msg"]
+__all__ = ["MemoryNode", "MemoryNodeConfig", "main", "STATS_QOS", "SERVICE_QOS", "SOURCES", "stats_to_msg"]
 
 # A periodic gauge: only the newest value matters (architecture.md, QoS table).
 STATS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -100,6 +100,41 @@ class _Refused(Exception):
     """A request the node itself refuses before it reaches the core."""
 
 
+@dataclass(frozen=True)
+class MemoryNodeConfig:
+    """memory_node's own parameters (the memory's are MemoryConfig, comper_memory.core)."""
+
+    key_size: int = param(0, "length of the transition key [s, a, r, s'] (2*obs + action + 1); 0 = learnt from the "
+                             "first store", minimum=0, maximum=2**31 - 1)
+    stats_period_s: float = param(1.0, "period of the ~/stats topic in seconds (0 = not published)", minimum=0.0,
+                                  maximum=3600.0)
+    sample_seed: int = param(-1, "seed of the node's own sampling generator (used when a Sample request has "
+                                 "seed < 0); -1 = from OS entropy", minimum=-1)
+    faiss_threads: int = param(
+        1, "OpenMP threads faiss may use in this process (0 = faiss's default, all cores). 1 is fastest for store "
+        "batches of tens to thousands: several threads per small search cost more than they save",
+        minimum=0, maximum=1024)
+    blas_threads: int = param(
+        1, "threads of numpy's OpenBLAS in this process (0 = the library's default, all cores). 1: the key "
+        "projection of a store call took 0.7 ms with one thread and 13-27 ms with two on the busy 2-core machine "
+        "(benchmarks/memory_atari_bench.py). Process-wide, also when embedded", minimum=0, maximum=1024)
+    executor_threads: int = param(
+        1, "executor main() spins this node with: 1 = SingleThreadedExecutor (default: requests served one at a "
+        "time, which the core's single lock does anyway; ~3x less CPU per call than rclpy's "
+        "MultiThreadedExecutor), >= 2 = MultiThreadedExecutor with that many threads (requests taken from DDS at "
+        "once). Ignored when the node is embedded in another process", minimum=1, maximum=64)
+    snapshot_service: str = param(
+        "save_restore", "what ~/snapshot lets peers do: save_restore (default), save (OP_RESTORE, which replaces the "
+        "whole state, is refused) or disabled (both refused). ROS 2 services carry no caller identity: use SROS2 "
+        "security enclaves where only some peers may call (docs/memory-service.md)",
+        choices=("save_restore", "save", "disabled"))
+    snapshot_root: str = param(
+        "", "the only directory ~/snapshot may write or read named snapshots in (a relative request path is taken "
+        "under it; an absolute one must lie inside it after resolving links). '' = <storage_dir>/snapshots, or no "
+        "named snapshots at all without storage_dir. It must not be the storage directory or contain it. An "
+        "existing target is replaced only if it is a snapshot (manifest.json + state.npz and nothing else)")
+
+
 class MemoryNode(Node):
     """The compact-memory node. ``node_kwargs`` go to rclpy's Node (context, parameter_overrides,
     namespace, ...), so an agent can embed it in its own process (``bringup``).
@@ -112,65 +147,16 @@ class MemoryNode(Node):
         super().__init__(node_name, **node_kwargs)
         try:
             self.config: MemoryConfig = declare_config(self, MemoryConfig).validate()
-            self.key_size = int(self.declare_parameter(
-                "key_size", 0, ParameterDescriptor(
-                    description="length of the transition key [s, a, r, s'] (2*obs + action + 1); "
-                                "0 = learnt from the first store", read_only=True,
-                    integer_range=[IntegerRange(from_value=0, to_value=2**31 - 1, step=0)])).value)
-            self.stats_period_s = float(self.declare_parameter(
-                "stats_period_s", 1.0, ParameterDescriptor(
-                    description="period of the ~/stats topic in seconds (0 = not published)",
-                    read_only=True,
-                    floating_point_range=[FloatingPointRange(from_value=0.0, to_value=3600.0, step=0.0)])).value)
-            self.sample_seed = int(self.declare_parameter(
-                "sample_seed", -1, ParameterDescriptor(
-                    description="seed of the node's own sampling generator (used when a Sample "
-                                "request has seed < 0); -1 = from OS entropy", read_only=True)).value)
-            self.faiss_threads = int(self.declare_parameter(
-                "faiss_threads", 1, ParameterDescriptor(
-                    description="OpenMP threads faiss may use in this process (0 = faiss's default, all "
-                                "cores). 1 is fastest for store batches of tens to thousands: several "
-                                "threads per small search cost more than they save", read_only=True,
-                    integer_range=[IntegerRange(from_value=0, to_value=1024, step=0)])).value)
+            self.p = p = declare_config(self, MemoryNodeConfig)
+            self.key_size, self.stats_period_s, self.sample_seed = p.key_size, p.stats_period_s, p.sample_seed
+            self.faiss_threads, self.blas_threads = p.faiss_threads, p.blas_threads
+            self.executor_threads, self.snapshot_service, self.snapshot_root = (
+                p.executor_threads, p.snapshot_service, p.snapshot_root)
             if self.faiss_threads > 0:
                 import faiss
                 faiss.omp_set_num_threads(self.faiss_threads)
-            self.blas_threads = int(self.declare_parameter(
-                "blas_threads", 1, ParameterDescriptor(
-                    description="threads of numpy's OpenBLAS in this process (0 = the library's default, "
-                                "all cores). 1: the key projection of a store call took 0.7 ms with one "
-                                "thread and 13-27 ms with two on the busy 2-core machine "
-                                "(benchmarks/memory_atari_bench.py). Process-wide, also when embedded",
-                    read_only=True, integer_range=[IntegerRange(from_value=0, to_value=1024, step=0)])).value)
             if self.blas_threads > 0 and set_numpy_blas_threads(self.blas_threads) is None:
                 self.get_logger().warning("blas_threads: numpy's BLAS is not OpenBLAS; its threads are unchanged")
-            self.executor_threads = int(self.declare_parameter(
-                "executor_threads", 1, ParameterDescriptor(
-                    description="executor main() spins this node with: 1 = SingleThreadedExecutor "
-                                "(default: requests served one at a time, which the core's single lock "
-                                "does anyway; ~3x less CPU per call than rclpy's MultiThreadedExecutor), "
-                                ">= 2 = MultiThreadedExecutor with that many threads (requests taken from "
-                                "DDS at once). Ignored when the node is embedded in another process",
-                    read_only=True, integer_range=[IntegerRange(from_value=1, to_value=64, step=0)])).value)
-            self.snapshot_service = str(self.declare_parameter(
-                "snapshot_service", "save_restore", ParameterDescriptor(
-                    description="what ~/snapshot lets peers do: save_restore (default), save (OP_RESTORE, "
-                                "which replaces the whole state, is refused) or disabled (both refused). "
-                                "ROS 2 services carry no caller identity: use SROS2 security enclaves "
-                                "where only some peers may call (docs/memory-service.md)",
-                    read_only=True, additional_constraints="one of: save_restore, save, disabled")).value)
-            if self.snapshot_service not in ("save_restore", "save", "disabled"):
-                raise ConfigError(f"snapshot_service {self.snapshot_service!r} is not one of "
-                                  "save_restore, save, disabled")
-            self.snapshot_root = str(self.declare_parameter(
-                "snapshot_root", "", ParameterDescriptor(
-                    description="the only directory ~/snapshot may write or read named snapshots in "
-                                "(a relative request path is taken under it; an absolute one must lie "
-                                "inside it after resolving links). '' = <storage_dir>/snapshots, or no "
-                                "named snapshots at all without storage_dir. It must not be the storage "
-                                "directory or contain it. An existing target is replaced only if it is a "
-                                "snapshot (manifest.json + state.npz and nothing else)",
-                    read_only=True)).value)
             self._snapshot_root = self._check_snapshot_root()
             self.memory = CompactMemory(self.config, self.key_size or None,
                                         log=lambda text: self.get_logger().warning(text))
