@@ -216,3 +216,29 @@ def test_embedded_in_process_with_node_kwargs(ros_node):
     finally:
         ros_node.test_executor.remove_node(sim_node)
         sim_node.destroy_node()
+
+
+def test_sim_client_steps_and_raises_typed_errors(launch):
+    """The client the learners use (comper_sim.client.SimClient): numpy in and out, a refused request
+    raises ServiceRefused with the node's reason, a missing server ServiceUnavailable."""
+    from comper_msgs_py.service_client import ServiceRefused, ServiceTimeout, ServiceUnavailable, wait_for_services
+    from comper_sim.client import SimClient
+    proc, name = start(launch, "client", "-p", "env_id:=Hopper-v4", "-p", "seed:=3")
+    with SimClient.standalone(name, timeout=60.0) as sim:
+        assert sim.wait_for_service(60.0), proc.log()
+        assert sim.info().env_id == "Hopper-v4"
+        obs = sim.reset(0, dtype=np.float32)
+        assert obs.shape == (11,) and obs.dtype == np.float32
+        r = sim.step(np.zeros(3, np.float32))
+        assert r.observation.shape == (11,) and isinstance(r.reward, float) and r.episode_step == 1
+        many = sim.step_many(np.zeros((5, 3), np.float32))
+        assert len(many.transitions) == 5 and many.observation.shape == (11,)
+        with pytest.raises(ServiceRefused) as err:
+            sim.step(np.zeros(7, np.float32))                    # wrong action size: refused, node keeps serving
+        assert err.value.message and "refused" in str(err.value)
+        assert sim.step(np.zeros(3, np.float32)).episode_step >= 2
+    with SimClient.standalone(f"no_such_sim_{os.getpid()}", timeout=0.5) as ghost:
+        with pytest.raises(ServiceUnavailable, match="not available"):
+            wait_for_services({"sim": ghost.step_client()}, 0.5)
+        with pytest.raises(ServiceTimeout):                      # nobody answers: a TimeoutError too
+            ghost.info(timeout=0.5)
