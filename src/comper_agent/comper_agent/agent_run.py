@@ -10,6 +10,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from comper_msgs_py.service_client import ServiceError
+
 from . import run_io
 
 __all__ = ["AgentRun", "next_due"]
@@ -97,7 +99,7 @@ class AgentRun:
                 for _ in range(probe_calls):
                     probe()
                 probe_ms = 1000.0 * (time.perf_counter() - t0) / probe_calls
-            except RuntimeError:     # a ServiceError or a shut-down context: no estimate
+            except ServiceError:     # no answer, refused, or the context shut down: no estimate
                 pass
         transport_s = probe_ms / 1000.0 * calls if math.isfinite(probe_ms) else float("nan")
         rate = steps / elapsed if elapsed > 0 else float("nan")

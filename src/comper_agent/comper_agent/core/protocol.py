@@ -38,13 +38,15 @@ def final_performance(returns, **kw) -> tuple[float, int]:
 
 def tercile_summaries(progress, returns, *, budget: float | None = None, n: int = 5,
                       n_small: int = 3, small_below: int = 25) -> list[dict]:
-    """Mean of the last n (5; 3 for runs with under 25 episodes) episodes that ended by the end
-    of each tercile of the budget. progress: frames (or steps) of the run when each episode ended;
-    budget: the run's frame (or step) budget, default the last episode's progress."""
+    """Mean (and std) of the last n (5; 3 for runs with under 25 episodes) episodes that ended by
+    the end of each tercile of the budget, and how many had ended (end_episode). progress: frames
+    (or steps) of the run when each episode ended; budget: the run's frame (or step) budget,
+    default the last episode's progress."""
     p = np.asarray(progress, dtype=np.float64)
     r = np.asarray(returns, dtype=np.float64)
     if p.size == 0:
-        return [{"tercile": k, "end": math.nan, "mean": math.nan, "n": 0} for k in (1, 2, 3)]
+        return [{"tercile": k, "end": math.nan, "mean": math.nan, "std": math.nan, "n": 0, "end_episode": 0}
+                for k in (1, 2, 3)]
     budget = float(budget if budget else p.max())
     k_use = n_small if p.size < small_below else n
     out = []
@@ -53,7 +55,8 @@ def tercile_summaries(progress, returns, *, budget: float | None = None, n: int 
         sel = r[p <= end + 1e-9] if k < 3 else r     # the episode in progress at the budget finishes
         m = sel[-k_use:]
         out.append({"tercile": k, "end": end, "mean": float(np.mean(m)) if m.size else math.nan,
-                    "n": int(m.size)})
+                    "std": float(np.std(m)) if m.size else math.nan, "n": int(m.size),
+                    "end_episode": int(sel.size)})
     return out
 
 
@@ -63,13 +66,6 @@ def protocol_summary(returns, frames_at_end, budget: float | None = None) -> dic
     r = np.asarray(returns, dtype=np.float64)
     n = int(r.size)
     last, k = final_performance(r)
-    terciles = tercile_summaries(frames_at_end, r, budget=budget)
-    tk = last_n_rule(n, n=5)
-    ends = np.asarray(frames_at_end, dtype=np.float64)
-    for t in terciles:
-        sel = r[ends <= t["end"] + 1e-9] if t["tercile"] < 3 else r
-        part = sel[-tk:]
-        t["end_episode"] = int(sel.size)
-        t["std"] = float(np.std(part)) if part.size else math.nan
     return {"episodes": n, "last_k": k, "last_mean": last,
-            "last_std": float(np.std(r[-k:])) if k else math.nan, "tercile_k": tk, "terciles": terciles}
+            "last_std": float(np.std(r[-k:])) if k else math.nan, "tercile_k": last_n_rule(n, n=5),
+            "terciles": tercile_summaries(frames_at_end, r, budget=budget)}
