@@ -14,12 +14,17 @@ from comper_msgs_py.service_client import ServiceError
 
 from . import run_io
 
-__all__ = ["AgentRun", "next_due"]
+__all__ = ["AgentRun", "next_due", "resume_text"]
 
 
 def next_due(step: int, every: int) -> int | None:
     """The first multiple of `every` after `step` (None when every is 0: never)."""
     return (step // every + 1) * every if every > 0 else None
+
+
+def resume_text(step: int) -> str:
+    """How a run starts, for the start line: 'resuming at step N' or 'fresh run'."""
+    return f"resuming at step {step}" if step else "fresh run"
 
 
 class AgentRun:

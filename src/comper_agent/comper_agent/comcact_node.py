@@ -47,7 +47,7 @@ import numpy as np
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.convert import seq_to_numpy
 
-from .agent_run import next_due
+from .agent_run import next_due, resume_text
 from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
 from .node_config import ComcactNodeConfig
 from .core.config import ComcactConfig, DDPGConfig
@@ -121,7 +121,7 @@ class ComcactNode(AgentNode):
         what = ("COMCACT (memory + QT step)" if self.comcact else "DDPG baseline (uniform replay)")
         return (f"{what} on {p.env_id} (obs {list(self.obs_shape)}, actions {self.action_dim} in "
                 f"[{self.low.min():g}, {self.high.max():g}]), {p.bringup} bring-up, "
-                f"{'resuming at step ' + str(self.step) if self.step else 'fresh run'} to {p.total_steps} steps; "
+                f"{resume_text(self.step)} to {p.total_steps} steps; "
                 f"evaluation every {p.eval_every} steps x {p.eval_episodes} episodes"
                 + (f"; reduce every {p.reduce_every} updates, reduce_batch {p.reduce_batch}" if self.comcact else ""))
 

@@ -62,7 +62,7 @@ import numpy as np
 from comper_msgs_py.arrays import Transitions
 
 from . import run_io
-from .agent_run import next_due
+from .agent_run import next_due, resume_text
 from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
 from .node_config import COMPER_ALGORITHMS, ComperNodeConfig
 from .core.memory_schedule import (Row, reduce_due, rows_to_transitions, sets_touched_per_reduction,
@@ -217,7 +217,7 @@ class ComperNode(AgentNode):
         p, c = self.p, self.cfg
         return (f"{self.NAMES[p.algorithm]} on {p.env_id} (obs {list(self.obs_shape)} {np.dtype(self.OBS_DTYPE).name}, "
                 f"{self.info.num_actions} actions, frame skip {self.frame_skip}), {p.bringup} bring-up, "
-                f"{'resuming at step ' + str(self.step) if self.step else 'fresh run'} to {p.total_frames} frames"
+                f"{resume_text(self.step)} to {p.total_frames} frames"
                 + (f" (max {p.max_steps} steps)" if p.max_steps > 0 else "")
                 + f"; update every {c.train_frequency} steps from step {c.learning_starts}, batch {c.batch_size}"
                 + (f"; reduce every {p.reduce_every} steps x {p.reduce_batch} sets via {self.reducer}"
