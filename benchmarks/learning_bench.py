@@ -40,10 +40,13 @@ def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tasks", nargs="+", default=DEFAULT_TASKS, help="gymnasium task ids")
     ap.add_argument("--algorithms", nargs="+", default=["comcact", "ddpg"],
-                    choices=["comcact", "ddpg", "sb3_ddpg", *COMPER_ALGORITHMS],
                     help="comcact, ddpg: comcact_node (continuous actions); comper, comper_f, comper_m, dqn: "
                          "comper_node (discrete actions); sb3_ddpg: Stable-Baselines3 DDPG with default settings, "
                          "same evaluation protocol (benchmarks/sb3_reference.py; install it once with `make reference`)")
+    ap.add_argument("--variant", action="append", default=[], metavar="NAME=ALGORITHM:PARAM=VALUE[,PARAM=VALUE]",
+                    help="a named configuration usable in --algorithms, e.g. "
+                         "comcact_restore=comcact:restore_batch=true,label_critic=target (its runs get "
+                         "-p algorithm:=ALGORITHM -p PARAM:=VALUE ...; repeatable)")
     ap.add_argument("--target", type=float, default=None,
                     help="a return to count runs that reach it at any evaluation (e.g. 475 for CartPole-v1)")
     ap.add_argument("--seeds", type=int, default=3, help="seeds per (task, algorithm): 0..N-1")
@@ -63,7 +66,28 @@ def parse_args(argv=None):
                     help="results.json files of earlier sweeps (e.g. docs/results/learning/*.json, kept in git): "
                          "their runs join this table and the plots (a sweep split over several sessions or "
                          "machines); runs of this sweep win on the same run id")
-    return ap.parse_args(argv)
+    args = ap.parse_args(argv)
+    args.variants = parse_variants(args.variant)
+    known = ["comcact", "ddpg", "sb3_ddpg", *COMPER_ALGORITHMS, *args.variants]
+    bad = [a for a in args.algorithms if a not in known]
+    if bad:
+        ap.error(f"unknown algorithm(s) {', '.join(bad)}: choose from {', '.join(known)} (or define one with --variant)")
+    return args
+
+
+def parse_variants(specs) -> dict:
+    """{name: (base algorithm, [(param, value), ...])} from --variant NAME=ALGORITHM:P=V,P=V."""
+    out = {}
+    for spec in specs:
+        name, sep, rest = spec.partition("=")
+        base, _, params = rest.partition(":")
+        pairs = [kv.split("=", 1) for kv in params.split(",") if kv]
+        if not sep or not name or base not in ("comcact", "ddpg", *COMPER_ALGORITHMS) \
+                or any(len(kv) != 2 or not kv[0] for kv in pairs):
+            raise SystemExit(f"--variant {spec!r}: expected NAME=ALGORITHM:PARAM=VALUE[,PARAM=VALUE] with ALGORITHM "
+                             f"one of comcact, ddpg, {', '.join(COMPER_ALGORITHMS)}")
+        out[name] = (base, [(k, v) for k, v in pairs])
+    return out
 
 
 def run_id(alg, task, seed):
@@ -77,9 +101,10 @@ def launch(args, base: Path, alg, task, seed, domain):
                "--total-steps", str(args.total_steps), "--eval-every", str(args.eval_every),
                "--eval-episodes", str(args.eval_episodes), "--run-dir", str(base / "runs" / rid)]
         return _spawn(base, rid, cmd, domain, alg, task, seed)
-    node, budget = ("comper_node", "total_frames") if alg in COMPER_ALGORITHMS else ("comcact_node", "total_steps")
+    base_alg, params = args.variants.get(alg, (alg, []))
+    node, budget = ("comper_node", "total_frames") if base_alg in COMPER_ALGORITHMS else ("comcact_node", "total_steps")
     cmd = [shutil.which("ros2") or "ros2", "run", "comper_agent", node, "--ros-args",
-           "-p", f"algorithm:={alg}", "-p", f"env_id:={task}", "-p", f"seed:={seed}",
+           "-p", f"algorithm:={base_alg}", "-p", f"env_id:={task}", "-p", f"seed:={seed}",
            "-p", f"{budget}:={args.total_steps}", "-p", f"eval_every:={args.eval_every}",
            "-p", f"eval_episodes:={args.eval_episodes}", "-p", f"runs_root:={base / 'runs'}",
            "-p", f"run_id:={rid}", "-p", "progress_period_s:=30.0"]
@@ -87,6 +112,8 @@ def launch(args, base: Path, alg, task, seed, domain):
     if extra and extra[0] == "--ros-args":
         extra = extra[1:]
     cmd += extra
+    for k, v in params:
+        cmd += ["-p", f"{k}:={v}"]
     return _spawn(base, rid, cmd, domain, alg, task, seed)
 
 
@@ -201,7 +228,9 @@ def bootstrap_ci(values, n_boot: int = 10_000, seed: int = 0) -> tuple[float, fl
 def report(args, base: Path) -> dict:
     import numpy as np
     results = {"total_steps": args.total_steps, "eval_every": args.eval_every, "eval_episodes": args.eval_episodes,
-               "report_steps": args.report_steps, "runs": {}, "table": {}}
+               "report_steps": args.report_steps,
+               "variants": {k: {"algorithm": b, "params": dict(ps)} for k, (b, ps) in args.variants.items()},
+               "runs": {}, "table": {}}
     for t in args.tasks:
         for a in args.algorithms:
             for s in range(args.seeds):
@@ -219,6 +248,8 @@ def report(args, base: Path) -> dict:
             print(f"[bench] {inc}: {prev['total_steps']} steps / eval every {prev['eval_every']}, not "
                   f"{args.total_steps} / {args.eval_every}: not included", flush=True)
             continue
+        for k, v in prev.get("variants", {}).items():
+            results["variants"].setdefault(k, v)
         for rid, r in prev["runs"].items():
             if r["evals"] and not (rid in results["runs"] and results["runs"][rid]["evals"]):
                 results["runs"][rid] = r
@@ -264,7 +295,9 @@ def report(args, base: Path) -> dict:
           f"({args.eval_episodes} greedy episodes), mean over seeds of the per-run mean evaluation return with "
           "a bootstrap 95% confidence interval of that mean (10,000 resamples of the seeds; with 3 seeds it "
           "spans the seeds' range at most); steps/s = the whole run including evaluations (sb3_ddpg: "
-          "Stable-Baselines3 DDPG, default settings, in-process gymnasium env, no ROS).", "", *lines, "",
+          "Stable-Baselines3 DDPG, default settings, in-process gymnasium env, no ROS).", "",
+          *[f"- {k}: {v['algorithm']} with " + ", ".join(f"{pk}:={pv}" for pk, pv in v["params"].items())
+            for k, v in results["variants"].items()], "", *lines, "",
           "Time split per run (seconds; phases measured in the learner node):", ""]
     for rid, r in results["runs"].items():
         if r["timers"]:

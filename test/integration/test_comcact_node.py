@@ -1,7 +1,8 @@
 """comcact_node end to end over real ROS 2 (separate processes, no mocks):
 embedded bring-up on InvertedPendulum-v4 (evaluations and episodes published, run directory
 written, Ctrl-C saves a final checkpoint); external bring-up with sim_node, memory_node and
-qt_trainer_node started by ros2 run; the ddpg variant with a checkpoint round trip and resume."""
+qt_trainer_node started by ros2 run (with restore_batch: the re-stored batches join their sets in
+the memory node); the ddpg variant with a checkpoint round trip and resume."""
 import os
 import signal
 import time
@@ -85,13 +86,18 @@ def test_external_bringup_uses_nodes_started_with_ros2_run(launch, tmp_path):
     proc = launch("comper_agent", "comcact_node",
                   *_args(tmp_path, "ext", "-p", "bringup:=external", "-p", f"sim_node:={sim}",
                          "-p", f"memory_node:={mem}", "-p", f"qt_trainer_node:={qt}", "-p", "total_steps:=200",
-                         "-p", "eval_every:=100", "-p", "eval_episodes:=1", "-p", "startup_timeout_s:=60"),
+                         "-p", "eval_every:=100", "-p", "eval_episodes:=1", "-p", "startup_timeout_s:=60",
+                         "-p", "restore_batch:=true", "-p", "label_critic:=target", "-p", "diagnostics_every:=10"),
                   name="learner_ext")
     assert _wait(proc, 240) == 0, proc.log()[-4000:]
     assert "external bring-up" in proc.log()
     assert _evals(tmp_path, "ext") == [0, 100, 200]
     state = torch.load(tmp_path / "ext" / "checkpoints" / "latest.pt", weights_only=True)["state"]
     assert state["counters"]["step"] == 200 and state["counters"]["reductions"] >= 1
+    # restore_batch: every updated batch went back to the memory node and joined its transitions' sets
+    diag = run_io.MetricsLog.read(tmp_path / "ext" / "metrics.jsonl", "qt_diagnostics")
+    assert len(diag) > 3 and diag[-1]["restored"] > diag[0]["restored"] >= 0
+    assert max(d["multi_member_fraction"] for d in diag) > 0.5 and diag[-1]["set_size_mean"] > 2
 
 
 def test_ddpg_variant_checkpoint_and_resume_continue_the_step_count(launch, tmp_path):

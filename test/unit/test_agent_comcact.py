@@ -239,3 +239,21 @@ def test_qt_step_gate_skips_a_qt_target_worse_than_the_critic_s_own():
     assert close > 0.0 and out["qt_gated"] == 0.0
     far, out, lrn = _qt_step_change(1.0, gate=True, shift=100.0)    # far off: skipped, nothing moves
     assert far == 0.0 and out["qt_gated"] == 1.0 and lrn.qt_gated == 1 and lrn.qt_steps == 0
+
+
+def test_label_critic_target_labels_with_the_target_networks():
+    """label_critic target: the label is Q'(s', mu'(s')) (0 when terminated), the DDPG target's own
+    bootstrap; online (the thesis): Q(s', mu(s')). They differ once an update has moved the online nets."""
+    term = np.zeros(16, bool)
+    term[:4] = True
+    b = batch(16, seed=5, terminated=term)
+    online, target = learner(seed=2), learner(seed=2, label_critic="target")
+    for lrn in (online, target):
+        lrn.update(batch(seed=6))
+    s2 = torch.as_tensor(b.next_states)
+    with torch.no_grad():
+        ref = target.critic_target(s2, target.actor_target(s2)).numpy() * ~term
+    np.testing.assert_allclose(target.value_labels(b), ref, atol=1e-6)
+    np.testing.assert_allclose(target.value_labels(b), (target.td_targets(b).numpy() - b.rewards) / 0.99, atol=1e-4)
+    assert np.all(target.value_labels(b)[:4] == 0.0)
+    assert np.abs(online.value_labels(b) - target.value_labels(b))[4:].max() > 1e-4

@@ -98,6 +98,8 @@ class ComcactNode(AgentNode):
         self.rng = np.random.default_rng(self.cfg.seed + 7)   # warm-up actions
         self.since_reduce = 0
         self.update_count = 0
+        self.restore: list[Transitions] = []   # restore_batch: updated batches with fresh labels, for the next store
+        self.restored = 0
 
     def _restore(self, state: dict) -> None:
         super()._restore(state)
@@ -228,15 +230,26 @@ class ComcactNode(AgentNode):
         else:
             with self.ptimers("learner"):
                 t.value_labels = self.learner.value_labels(t)
-            with self.ptimers("memory"):
-                self.mem.store(t)
+            self._mem_store(t)
         self.stored += len(t)
         self.ep_parts.append(t)
+
+    def _mem_store(self, t: Transitions | None) -> None:
+        """One store call: `t` (new transitions, labelled) and the re-stored batches waiting (restore_batch)."""
+        parts = ([t] if t is not None else []) + self.restore
+        if not parts:
+            return
+        self.restored += sum(len(x) for x in self.restore)
+        self.restore = []
+        with self.ptimers("memory"):
+            self.mem.store(parts[0] if len(parts) == 1 else Transitions.concatenate(parts))
 
     def _flush(self) -> None:
         if self.pending:
             rows, self.pending = self.pending, []
             self._store(rows_to_transitions(rows, self.episodes, self.run_id))
+        elif self.comcact and self.restore:
+            self._mem_store(None)
 
     def _sample(self):
         """(batch, set sizes) for the next update: from RTM (prefetched up to the next reduction,
@@ -301,6 +314,9 @@ class ComcactNode(AgentNode):
                 if targets is not None:
                     self.last_update.update(self.learner.qt_critic_step(batch, targets))
                 self.learner.soft_update()
+                if p.restore_batch:       # fresh labels after this update's steps (and target update)
+                    batch.value_labels = self.learner.value_labels(batch)
+                    self.restore.append(batch)
         else:
             with self.ptimers("learner"):
                 batch = self.replay.sample(self.cfg.batch_size)
@@ -324,7 +340,7 @@ class ComcactNode(AgentNode):
                    label_age_max=float(age.max()) if age.size else float("nan"),
                    set_size_mean=float(cnt.mean()) if cnt.size else float("nan"),
                    multi_member_fraction=float((cnt > 1).mean()) if cnt.size else float("nan"),
-                   qt_version=int(self.mem.qt_version), rtm_size=int(self.rtm_size))
+                   qt_version=int(self.mem.qt_version), rtm_size=int(self.rtm_size), restored=int(self.restored))
         self.metrics.write("qt_diagnostics", step=self.step, update=self.update_count, **rec)
         self.scalars.scalars({k: v for k, v in rec.items() if isinstance(v, float)}, self.step, prefix="qt/")
 

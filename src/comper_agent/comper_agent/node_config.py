@@ -193,6 +193,13 @@ class ComcactNodeConfig(AgentRunConfig):
         thesis="every iteration (1; Algorithm 8 line 27-28)", minimum=1,
         deviation="10, chosen by measurement (docs/comcact.md); -p reduce_every:=1 is the thesis's cadence")
     reduce_batch: int = redefault(AgentRunConfig, "reduce_batch", 50_000)
+    restore_batch: bool = param(
+        False, "comcact: re-store each updated batch into TM with fresh value labels (computed after the "
+        "update by label_critic's networks; sent with the next store call), so that a sampled transition's set "
+        "collects a history of labels for QT to learn from, as in COMPER",
+        thesis="no re-store in Algorithm 8 (each transition keeps the label of its store time)",
+        deviation="true: labels that follow the critic; on continuous tasks almost every set has one member, so "
+        "without it QT sees one label per set, computed when the transition arrived (method.md 6.4)")
     eval_every: int = param(5_000, "steps between evaluations (0 = never)", thesis="5,000 (chapter 6)",
                             minimum=0)
     checkpoint_every: int = param(

@@ -104,18 +104,21 @@ class ComcactLearner:
     # ------------------------------------------------------------------ labels and targets
     @torch.no_grad()
     def value_labels(self, batch: Transitions) -> np.ndarray:
-        """Labels stored with transitions (online nets, eval mode), float32 [N].
+        """Labels stored with transitions (eval mode), float32 [N].
 
-        next_value: Q(s', mu(s')) * (1 - terminated); q_sa: Q(s, a) (thesis-literal)."""
+        next_value: Q(s', mu(s')) * (1 - terminated); q_sa: Q(s, a) (thesis-literal); label_critic
+        target: the target networks Q', mu' instead."""
         if len(batch) == 0:
             return np.zeros(0, np.float32)
         s, a, _, s2, not_done = self._tensors(batch)
-        self.actor.eval()
-        self.critic.eval()
+        actor, critic = ((self.actor_target, self.critic_target) if self.config.label_critic == "target"
+                         else (self.actor, self.critic))
+        actor.eval()
+        critic.eval()
         if self.config.qt_label == "q_sa":
-            v = self.critic(s, a)
+            v = critic(s, a)
         else:
-            v = self.critic.pessimistic(s2, self.actor(s2)) * not_done
+            v = critic.pessimistic(s2, actor(s2)) * not_done
         return v.cpu().numpy().astype(np.float32)
 
     @torch.no_grad()

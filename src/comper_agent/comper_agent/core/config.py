@@ -122,6 +122,12 @@ class ComcactConfig:
                           "Q(s', mu(s')) (0 when terminated); q_sa = Q(s, a) (thesis-literal)",
                           thesis="q_sa (Algorithm 8 line 8)", choices=("next_value", "q_sa"),
                           deviation=_NEXT_VALUE_DEVIATION)
+    label_critic: str = param(
+        "online", "networks that compute the value labels (next_value: Q(s', mu(s'))): online = the critic and "
+        "actor being trained; target = the slowly moving target networks, the ones the DDPG target bootstraps from",
+        thesis="online (Algorithm 8 line 8: Q with Theta^Q)", choices=("online", "target"),
+        deviation="target: a QT fitted on these labels estimates the DDPG step's own bootstrap Q'(s', mu'(s')) "
+        "instead of the faster-moving online critic's (method.md 6.4)")
     actor_hidden: list[int] = param([400, 300], "actor hidden layers (ReLU; batch norm after each if batch_norm)",
                                     thesis="400, 300 (appendix B)")
     critic_hidden: list[int] = param([400, 300], "critic hidden layers (ReLU)",
