@@ -2,7 +2,8 @@
 services from this test process (MemoryClient and raw requests) and from separate client
 processes (memory_worker.py): store / sample / reduce / stats round trip, the two-phase reduction,
 every bad input refused with a message while nothing changes, the stats topic, snapshots (and a
-corrupted one refused), two concurrent learners, and durability across a SIGKILL."""
+corrupted one refused), two concurrent learners, the rate limiter across clients, and
+durability across a SIGKILL."""
 from __future__ import annotations
 
 import json
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from comper_memory.client import MemoryClient, MemoryServiceError
+from comper_memory.client import MemoryClient, MemoryServiceError, RateLimitTimeout
 from comper_memory.memory_node import STATS_QOS
 from comper_msgs.msg import Array, MemoryStats
 from comper_msgs.srv import Sample, Store
@@ -197,6 +198,7 @@ def test_round_trip_two_phase_bad_inputs_snapshots_and_clean_stop(launch, client
         assert restored[k] == saved[k], k
     t, ids, _ = memory.sample(70, seed=1)
     assert len(ids) == 70
+    restored = memory.stats()     # (the sample moved the rate limiter's counts)
     # a corrupted copy is refused with a clear message and changes nothing
     bad_snap = storage / "snapshots" / "bad"
     shutil.copytree(snap, bad_snap)
@@ -261,6 +263,60 @@ def test_two_learner_processes_store_and_sample_concurrently(launch, client_of, 
         assert ids == r["identity_ids"]
     s2 = memory.stats()
     assert s2["identities"] == total and s2["transitions_stored"] == 2 * total
+    assert proc.alive()
+
+
+def _in_thread(fn):
+    import threading
+    out = {}
+
+    def run():
+        try:
+            out["value"] = fn()
+        except Exception as exc:     # reported by the test
+            out["error"] = exc
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    return t, out
+
+
+def test_rate_limiter_holds_every_client_to_the_ratio(launch, client_of):
+    """samples_per_insert 1, error buffer 64, min size 32: a sampler waits for another client's
+    stores, a storer for another client's samples, a wait past rate_limit_timeout ends in
+    RateLimitTimeout, a call that could never pass is refused at once; the node serves the other
+    clients meanwhile and its stats report the ratio held."""
+    proc, name = start(launch, "rate", "-p", "samples_per_insert:=1.0", "-p", "rate_error_buffer:=64.0",
+                       "-p", "min_size_to_sample:=32")
+    sampler, storer, watcher = client_of(name), client_of(name), client_of(name)
+    t, out = _in_thread(lambda: sampler.sample(8, "tm"))          # nothing stored yet: waits
+    time.sleep(1.0)
+    assert t.is_alive() and watcher.stats()["rate_limited_samples"] >= 1   # the node answers others
+    storer.store(make_batch(1, 0, 64))
+    t.join(20)
+    assert not t.is_alive() and "error" not in out and len(out["value"][0]) == 8
+    assert sampler.rate_limited_waits == 1
+    storer.store(make_batch(1, 1, 32))                            # 96 - 8 = 88 owed: a store of 16 waits
+    t, out = _in_thread(lambda: storer.store(make_batch(1, 2, 16)))
+    time.sleep(1.0)
+    assert t.is_alive() and watcher.stats()["transitions_stored"] == 96
+    sampler.sample(32, "tm")                                       # 56 owed: the store passes
+    t.join(20)
+    assert not t.is_alive() and "error" not in out and out["value"].stored == 16
+    quick = MemoryClient.standalone(name, timeout=20.0, rate_limit_timeout=0.5)
+    try:
+        assert quick.wait_for_service(30.0)
+        quick.sample(32, "tm", num_batches=2)                      # 72 - 64 = 8 owed: inside [-32, 96]
+        t0 = time.monotonic()
+        with pytest.raises(RateLimitTimeout, match="waits for stores"):
+            quick.sample(48, "tm")                                 # 8 - 48 = -40: below the band
+        assert 0.4 < time.monotonic() - t0 < 5.0
+    finally:
+        quick.close()
+    refused(proc, lambda: storer.store(make_batch(1, 3, 200)), "could never pass")
+    s = watcher.stats()
+    assert (s["rate_inserts"], s["rate_samples"]) == (112, 104)
+    assert s["samples_per_insert_held"] == pytest.approx(104 / 112)
+    assert s["rate_limited_stores"] >= 1 and s["rate_limited_samples"] >= 3
     assert proc.alive()
 
 

@@ -38,6 +38,7 @@ as predictions) and the QT trainer (QT's predictions) serve.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,11 +47,11 @@ from comper_msgs.msg import MemoryStats
 from comper_msgs.srv import GetStats, Reduce, ReduceBegin, ReduceCommit, Sample, Snapshot, Store
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.convert import batch_to_transitions, numpy_to_seq, seq_to_numpy, transitions_to_batch
-from comper_msgs_py.service_client import PendingCall, ServiceClient, ServiceRefused
+from comper_msgs_py.service_client import PendingCall, ServiceClient, ServiceRefused, ServiceTimeout
 
 from .core.results import ReductionLease
 
-__all__ = ["MemoryClient", "ReductionClient", "MemoryServiceError", "StoreReply", "ReductionSets",
+__all__ = ["MemoryClient", "ReductionClient", "MemoryServiceError", "RateLimitTimeout", "StoreReply", "ReductionSets",
            "ReduceReply", "CommitReply", "SOURCES", "STATS_FIELDS", "stats_to_dict"]
 
 SOURCES = {"rtm": Sample.Request.SOURCE_RTM, "tm": Sample.Request.SOURCE_TM}
@@ -69,6 +70,11 @@ def stats_to_dict(msg: MemoryStats) -> dict:
 
 class MemoryServiceError(ServiceRefused):
     """The memory node refused a request (success=false); ``message`` is the node's reason."""
+
+
+class RateLimitTimeout(ServiceTimeout):
+    """A store or sample was held back by the node's rate limiter for longer than the client's
+    rate_limit_timeout; the message says which limit (nothing was stored or drawn)."""
 
 
 @dataclass
@@ -112,15 +118,21 @@ class MemoryClient(ServiceClient):
     ``MemoryClient.standalone(memory_node)``. memory_node: the memory node's name, or its fully
     qualified name ('/ns/memory_node'); a relative name resolves in this node's namespace.
     timeout: default seconds per call (each method also takes ``timeout=``).
+    rate_limit_timeout: how long store and sample keep retrying a call that the node's rate limiter
+    holds back (``rate_limited`` in the answer) before they raise :class:`RateLimitTimeout`
+    (None = ``timeout``); retries back off from 1 ms to 50 ms.
     """
 
     REFUSED = MemoryServiceError
     NODE_NAME = "memory_client"
 
     def __init__(self, node, memory_node: str = "memory_node", *, timeout: float = 30.0,
-                 callback_group=None):
+                 rate_limit_timeout: float | None = None, callback_group=None):
         super().__init__(node, memory_node, timeout=timeout, callback_group=callback_group)
         self.memory_node = self.server
+        self.rate_limit_timeout = timeout if rate_limit_timeout is None else float(rate_limit_timeout)
+        self.rate_limited_waits = 0     # calls of this client that had to wait for the rate limiter
+        self.rate_limited_s = 0.0       # seconds they waited in all
         self._store = self._make(Store, "store")
         self._sample = self._make(Sample, "sample")
         self._reduce = self._make(Reduce, "reduce")
@@ -131,22 +143,50 @@ class MemoryClient(ServiceClient):
 
     @classmethod
     def standalone(cls, memory_node: str = "memory_node", context=None, *, node_name: str | None = None,
-                   timeout: float = 30.0) -> "MemoryClient":
+                   timeout: float = 30.0, rate_limit_timeout: float | None = None) -> "MemoryClient":
         """A client with its own node and a background executor thread (``close()`` or ``with``
         tears them down). context=None: a private rclpy context is created and shut down by
         ``close()``; a given context must already be initialised and is left running."""
-        return super().standalone(memory_node, context, node_name=node_name, timeout=timeout)
+        return super().standalone(memory_node, context, node_name=node_name, timeout=timeout,
+                                  rate_limit_timeout=rate_limit_timeout)
 
     def store_client(self):
         """The rclpy client of ``<memory_node>/store`` (for :func:`wait_for_services`)."""
         return self._store
 
+    def _call_limited(self, client, request, timeout: float | None):
+        """_call, retried while the node's rate limiter holds the call back (module text)."""
+        r = self._call(client, request, timeout, check=False)
+        if r.success or not r.rate_limited:
+            return self._call_checked(client, r)
+        t0 = time.monotonic()
+        deadline, pause = t0 + self.rate_limit_timeout, 0.001
+        self.rate_limited_waits += 1
+        try:
+            while True:
+                if time.monotonic() + pause > deadline:
+                    raise RateLimitTimeout(f"{client.srv_name}: held back by the rate limiter for "
+                                           f"{self.rate_limit_timeout:g} s: {r.message}")
+                time.sleep(pause)
+                pause = min(2 * pause, 0.05)
+                r = self._call(client, request, timeout, check=False)
+                if r.success or not r.rate_limited:
+                    return self._call_checked(client, r)
+        finally:
+            self.rate_limited_s += time.monotonic() - t0
+
+    def _call_checked(self, client, response):
+        if not response.success:
+            raise self.REFUSED(client.srv_name, response.message)
+        return response
+
     # --- the memory's operations --------------------------------------------------------------
     def store(self, transitions: Transitions, *, timeout: float | None = None) -> StoreReply:
-        """Store N transitions (value_labels required, one per transition), atomically."""
+        """Store N transitions (value_labels required, one per transition), atomically; waits while
+        the node's rate limiter holds it back (``rate_limit_timeout``)."""
         req = Store.Request()
         transitions_to_batch(transitions, req.batch)
-        r = self._call(self._store, req, timeout)
+        r = self._call_limited(self._store, req, timeout)
         return StoreReply(seq_to_numpy(r.identity_ids, np.uint64), int(r.new_identities), int(r.stored),
                           int(r.wal_sequence))
 
@@ -156,12 +196,13 @@ class MemoryClient(ServiceClient):
 
         Returns (transitions, identity_ids uint64 [n], counts uint32 [n]) with n = k * num_batches
         (num_batches independent draws of k, one after the other); transitions.value_labels are QT
-        predictions (RTM) or newest labels (TM). seed >= 0: a reproducible draw."""
+        predictions (RTM) or newest labels (TM). seed >= 0: a reproducible draw. Waits while the
+        node's rate limiter holds it back (``rate_limit_timeout``)."""
         if source not in SOURCES:
             raise ValueError(f"sample: source must be 'rtm' or 'tm', got {source!r}")
         req = Sample.Request(batch_size=int(k), source=SOURCES[source], seed=-1 if seed is None else int(seed),
                              num_batches=int(num_batches))
-        r = self._call(self._sample, req, timeout)
+        r = self._call_limited(self._sample, req, timeout)
         return (batch_to_transitions(r.batch, validate=False), seq_to_numpy(r.identity_ids, np.uint64),
                 seq_to_numpy(r.counts, np.uint32))
 

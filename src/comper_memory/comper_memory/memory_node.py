@@ -64,7 +64,7 @@ from comper_msgs_py.params import ConfigError, param
 from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 
-from .core import CompactMemory, MemoryConfig, MemoryInputError, SnapshotError
+from .core import CompactMemory, MemoryConfig, MemoryInputError, RateLimited, SnapshotError
 
 __all__ = ["MemoryNode", "MemoryNodeConfig", "main", "STATS_QOS", "SERVICE_QOS", "SOURCES", "stats_to_msg"]
 
@@ -86,14 +86,13 @@ _REFUSED = (MemoryInputError, TransitionError, SnapshotError, ConfigError)
 def stats_to_msg(stats: dict, msg: MemoryStats | None = None) -> MemoryStats:
     """CompactMemory.stats() -> comper_msgs/MemoryStats (header left to the caller)."""
     msg = msg if msg is not None else MemoryStats()
-    msg.key_size = int(stats["key_size"])
-    msg.delta = float(stats["delta"])
-    for name in ("identities", "tm_sets", "rtm_size", "transitions_stored", "similarity_hits",
-                 "reductions", "sets_reduced", "evictions", "bytes_used", "wal_sequence"):
-        setattr(msg, name, int(stats[name]))
-    msg.hit_rate = float(stats["hit_rate"])
-    msg.compaction_ratio = float(stats["compaction_ratio"])
+    for name, kind in _STATS_TYPES.items():
+        setattr(msg, name, float(stats[name]) if kind == "double" else int(stats[name]))
     return msg
+
+
+#: every MemoryStats field but the header, with its type (the message is the one list of them)
+_STATS_TYPES = {k: v for k, v in MemoryStats.get_fields_and_field_types().items() if k != "header"}
 
 
 class _Refused(Exception):
@@ -200,6 +199,11 @@ class MemoryNode(Node):
 
     # --- helpers ------------------------------------------------------------------------------
     def _refuse(self, response, what: str, exc: Exception):
+        if isinstance(exc, RateLimited):   # normal flow control: the client retries; not logged
+            response.message = str(exc)
+            response.rate_limited = True
+            response.success = False
+            return response
         if isinstance(exc, (_Refused,) + _REFUSED):
             response.message = str(exc)
             self._warn(f"{what} refused: {exc}", error=False)
@@ -232,7 +236,7 @@ class MemoryNode(Node):
             yield
 
     def _stats(self) -> dict:
-        s = self.memory.stats()
+        s = {**self.memory.stats(), **self.memory.rate_stats()}
         if not self.config.storage_dir:
             s["wal_sequence"] = 0  # MemoryStats: 0 when not persistent
         return s

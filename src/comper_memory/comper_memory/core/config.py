@@ -35,6 +35,18 @@ class MemoryConfig:
         minimum=1)
     max_sample_batch: int = param(
         65536, "largest number of entries returned by one sample call", minimum=1)
+    min_size_to_sample: int = param(
+        0, "rate limiter: sample calls wait until the memory holds this many live identities (0 = no minimum)",
+        thesis="none (the learner samples from the first step)", minimum=0)
+    samples_per_insert: float = param(
+        0.0, "rate limiter: rows sampled per transition stored that the memory holds all clients to, within "
+        "rate_error_buffer (a store or sample that would leave the band waits in its client); 0 = no ratio. "
+        "Reverb's SampleToInsertRatio (docs/memory-service.md)", thesis="none (lock step, Algorithm 7 / 8)",
+        minimum=0.0)
+    rate_error_buffer: float = param(
+        0.0, "rate limiter: how far (in samples) the balance inserts x samples_per_insert - samples may drift "
+        "either side of samples_per_insert x min_size_to_sample; at least max(1, samples_per_insert) when a "
+        "ratio is set, and a store of n needs n x samples_per_insert <= 2 x this", minimum=0.0)
     frame_scale: float = param(
         1.0 / 255.0, "factor applied once to uint8 observations when building keys (float32 "
         "observations are used raw)", thesis="frames scaled to [0, 1] (section 5.1)", minimum=0.0)
@@ -98,6 +110,10 @@ class MemoryConfig:
         if self.max_store_batch > self.tm_capacity:
             raise ConfigError(f"max_store_batch ({self.max_store_batch}) must not exceed "
                               f"tm_capacity ({self.tm_capacity})")
+        if self.samples_per_insert > 0 and self.rate_error_buffer < max(1.0, self.samples_per_insert):
+            raise ConfigError(f"rate_error_buffer ({self.rate_error_buffer:g}) must be at least "
+                              f"max(1, samples_per_insert) = {max(1.0, self.samples_per_insert):g} when "
+                              "samples_per_insert is set")
         if self.durability not in ("flush", "fsync", "none"):
             raise ConfigError(f"durability {self.durability!r} is not one of flush, fsync, none")
         return self

@@ -26,6 +26,7 @@ from comper_msgs_py.arrays import Transitions
 
 from . import storage as st
 from .config import MemoryConfig
+from .rate_limiter import RateLimited, RateLimiter
 from .durability import COUNTERS, Durability, arrays_to_t, check_arrays, check_counters, t_to_arrays
 from .index import make_index
 from .results import (CommitResult, LeaseError, MemoryInputError, ReductionLease, SampleResult,
@@ -56,10 +57,13 @@ class CompactMemory:
         self._lock = threading.RLock()
         self._durable: Durability | None = None
         self._reset_state()
+        c = self.config
+        self.rate = RateLimiter(c.min_size_to_sample, c.samples_per_insert, c.rate_error_buffer)
         if self.config.storage_dir:
             self._durable = Durability(self.config, self._log, state=self._state_arrays,
                                        sequence=lambda: self.wal_sequence)
             self._durable.open(self._restore, self._replay)
+            self.rate.recovered(self.slots.n_live)
 
     # ================================================================== parts
     def _reset_state(self) -> None:
@@ -97,6 +101,7 @@ class CompactMemory:
         with self._lock:
             self.tm.expire(self._clock)
             clean, keys = validate_store(t, self.config, self.schema, self.expected_key_size)
+            self.rate.check_insert(len(clean), self.slots.n_live)
             if self.schema is None:
                 self._init_schema(schema_of(clean))
             y = self.index.project(keys)
@@ -105,6 +110,7 @@ class CompactMemory:
                 self._durable.append(self.wal_sequence + 1, st.WAL_STORE, t_to_arrays(clean))
             self.wal_sequence += 1
             out = self._apply_store(clean, y, res)
+            self.rate.inserted(len(clean))
             if self._durable is not None:
                 self._durable.maybe_checkpoint()
             return out
@@ -246,6 +252,7 @@ class CompactMemory:
             if k < 0 or k * nb > self.config.max_sample_batch:
                 raise MemoryInputError(f"sample: k={k} x num_batches={nb} outside [0, max_sample_batch="
                                        f"{self.config.max_sample_batch}]")
+            self.rate.check_sample(k * nb, self.slots.n_live)   # before the size checks: a sampler may wait to fill
             table = self.rtm if source == "rtm" else self.tm
             if k > table.n:
                 if not allow_fewer:
@@ -255,6 +262,7 @@ class CompactMemory:
                 raise MemoryInputError("sample: the memory is empty")
             rng = rng if rng is not None else np.random.default_rng(seed)
             slots = table.sample(k, nb, rng)
+            self.rate.sampled(k * nb)
             return SampleResult(self.slots.reps(slots, table.labels(slots)), self.a["id"][slots].copy(),
                                 self.a["count"][slots].copy(), source)
 
@@ -296,6 +304,11 @@ class CompactMemory:
                 "evictions": self.evictions, "bytes_used": self.bytes_used(),
                 "wal_sequence": self.wal_sequence, "leases": len(self.tm.leases),
             }
+
+    def rate_stats(self) -> dict:
+        """The rate limiter's counts (RateLimiter.stats): of this process's life, not the memory's state."""
+        with self._lock:
+            return self.rate.stats()
 
     # ================================================================== snapshots
     def _state_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
@@ -370,6 +383,7 @@ class CompactMemory:
             check_arrays(arrays)
             seq = self.wal_sequence
             self._restore(arrays, meta)
+            self.rate.recovered(self.slots.n_live)
             if self._durable is not None:
                 # the restore is an operation at the current log position: the new snapshot keeps
                 # the sequence monotone, so the older log files it replaces are never replayed
