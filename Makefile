@@ -24,9 +24,6 @@ bench-sim: setup  ## lock-step simulation throughput through ROS vs gymnasium di
 bench-memory: setup  ## compact-memory throughput, in-process and through ROS
 	@. ./env.sh && python benchmarks/memory_core_bench.py $(ARGS) && python benchmarks/memory_ros_bench.py $(ARGS)
 
-reference: setup  ## benchmark-only: Stable-Baselines3 (pinned) into ~/.cache/comper for the DDPG reference
-	bash scripts/setup_reference.sh
-
 lock:  ## re-resolve requirements.in into requirements.lock (needs the registries)
 	@scripts/lock.sh
 

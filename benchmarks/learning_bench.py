@@ -42,7 +42,7 @@ def parse_args(argv=None):
     ap.add_argument("--algorithms", nargs="+", default=["comcact", "ddpg"],
                     help="comcact, ddpg: comcact_node (continuous actions); comper, comper_f, comper_m, dqn: "
                          "comper_node (discrete actions); sb3_ddpg: Stable-Baselines3 DDPG with default settings, "
-                         "same evaluation protocol (benchmarks/sb3_reference.py; install it once with `make reference`)")
+                         "same evaluation protocol (benchmarks/sb3_reference.py; SB3 comes with make setup, requirements-extras.lock)")
     ap.add_argument("--variant", action="append", default=[], metavar="NAME=ALGORITHM:PARAM=VALUE[,PARAM=VALUE]",
                     help="a named configuration usable in --algorithms, e.g. "
                          "comcact_restore=comcact:restore_batch=true,label_critic=target (its runs get "

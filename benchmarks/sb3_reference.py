@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Stable-Baselines3 DDPG with its default settings: the reference the DDPG baseline is judged by.
 
-    bash scripts/setup_reference.sh                 # once: SB3 into ~/.cache/comper (outside the venv)
+    make setup                                      # installs SB3 (requirements-extras.lock) next to the venv
     python benchmarks/sb3_reference.py --env-id Hopper-v4 --seed 0 --total-steps 50000 --run-dir /tmp/sb3-hopper
 
 Not part of the suite (SB3 is not one of the product's dependencies); learning_bench.py runs it as
@@ -26,16 +26,8 @@ def _import_sb3():
         import stable_baselines3
         return stable_baselines3
     except ImportError:
-        import glob
-        import os
-        for d in sorted(glob.glob(os.path.expanduser("~/.cache/comper/reference-sb3-*")), reverse=True):
-            sys.path.append(d)
-            try:
-                import stable_baselines3
-                return stable_baselines3
-            except ImportError:
-                sys.path.remove(d)
-        raise SystemExit("stable-baselines3 is not installed: run `bash scripts/setup_reference.sh` first")
+        raise SystemExit("stable-baselines3 is not importable: run `make setup` (it installs the extras of "
+                         "requirements-extras.lock) and `. ./env.sh` first")
 
 
 def main(argv=None) -> int:

@@ -3,6 +3,7 @@
 #   1. finds CPython 3.12 (the ROS 2 Jazzy wheels are cp312 only),
 #   2. creates the virtual environment OUTSIDE the clone, cached by the hash of requirements.lock
 #      ($COMPER_CACHE_DIR, default ~/.cache/comper), and installs the pinned lock into it,
+#      and the test/benchmark extras of requirements-extras.lock next to it (--no-deps),
 #   3. applies the wheel path fix the ros-jazzy CMake exports need (/opt/python/cp312-cp312),
 #   4. builds the workspace with colcon (colcon.meta) when src/ changed since the last build,
 #   5. writes env.sh: the one file to source (venv, ament paths, install/, the `ros2` stand-in).
@@ -39,6 +40,18 @@ flock -u 9
 ln -sfn "$VENV" "$ROOT/.venv"
 VPY="$VENV/bin/python"
 SITE=$("$VPY" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
+
+# --- 2b. test and benchmark extras (requirements-extras.lock: not runtime dependencies) ----------
+EXTRAS_KEY=$( { cat requirements-extras.lock; echo "$KEY"; } | sha256sum | cut -c1-16)
+EXTRAS="$CACHE/extras-$EXTRAS_KEY"
+if [ ! -f "$EXTRAS/.comper-complete" ]; then
+  say "installing the test/benchmark extras (requirements-extras.lock) into $EXTRAS"
+  rm -rf "$EXTRAS" "$EXTRAS.tmp"
+  # --no-deps: their dependencies are the venv's (requirements.lock)
+  "$VPY" -m pip install --quiet --no-input --no-deps --target "$EXTRAS.tmp" -r requirements-extras.lock
+  touch "$EXTRAS.tmp/.comper-complete"
+  mv "$EXTRAS.tmp" "$EXTRAS"
+fi
 
 # --- 3. wheel path fix ------------------------------------------------------------------------
 # The ros-jazzy wheels' exported CMake targets hard-code the paths of the machine that built them.
@@ -106,5 +119,7 @@ export PATH="${STANDIN:+$STANDIN:}$VENV/bin:\$PATH"
 export AMENT_PREFIX_PATH="$VENV\${AMENT_PREFIX_PATH:+:\$AMENT_PREFIX_PATH}"
 export CMAKE_PREFIX_PATH="$VENV\${CMAKE_PREFIX_PATH:+:\$CMAKE_PREFIX_PATH}"
 . "$ROOT/install/local_setup.bash"
+# test and benchmark extras (requirements-extras.lock), after the workspace's own packages
+export PYTHONPATH="\${PYTHONPATH:+\$PYTHONPATH:}$EXTRAS"
 ENV
 say "ready: source $ROOT/env.sh"
