@@ -61,6 +61,9 @@ def parse_args(argv=None):
     ap.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
                     help="extra parameters for every run, e.g. --ros-args -p reduce_every:=1 (must come last)")
     ap.add_argument("--timeout-s", type=float, default=6 * 3600, help="kill a run after this many seconds")
+    ap.add_argument("--only", nargs="+", default=[], metavar="RUN_ID",
+                    help="run only these runs of the grid (e.g. the ones a broken machine ended early); the report "
+                         "still covers every run found in <out>/<tag>")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the tables/plots from <out>/<tag>")
     ap.add_argument("--include", nargs="+", default=[], metavar="RESULTS_JSON",
                     help="results.json files of earlier sweeps (e.g. docs/results/learning/*.json, kept in git): "
@@ -166,6 +169,11 @@ def release_domain(dom: int) -> None:
 def run_all(args, base: Path) -> None:
     # seed-major: a sweep stopped early still holds every (task, algorithm) for the first seeds
     jobs = [(a, t, s) for s in range(args.seeds) for t in args.tasks for a in args.algorithms]
+    if args.only:
+        unknown = set(args.only) - {run_id(*j) for j in jobs}
+        if unknown:
+            raise SystemExit(f"--only: {', '.join(sorted(unknown))} not in this grid")
+        jobs = [j for j in jobs if run_id(*j) in args.only]
     print(f"[bench] {len(jobs)} runs ({len(args.tasks)} tasks x {len(args.algorithms)} algorithms x "
           f"{args.seeds} seeds), {args.total_steps} steps each, {args.parallel} at a time; outputs in {base}",
           flush=True)

@@ -23,6 +23,7 @@ setup(
         "qt_trainer_node = comper_agent.qt_trainer_node:main",
         "comcact_node = comper_agent.comcact_node:main",
         "comper_node = comper_agent.comper_node:main",
+        "actor_node = comper_agent.actor_node:main",
         "recorder_node = comper_agent.recorder_node:main",
         "evaluate = comper_agent.evaluate:main",
         "bag_to_memory = comper_agent.bag_tools:bag_to_memory_main",

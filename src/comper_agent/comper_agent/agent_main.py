@@ -24,6 +24,8 @@ def help_text(cls) -> str:
     doc = (sys.modules[cls.__module__].__doc__ or "").strip()
     lines = [doc, "", "Node parameters (--ros-args -p name:=value, or --params-file; read-only):"]
     lines += [f"  {f.name} (default {d!r}): {describe(f)}" for f, d, _ in spec_of(cls.CONFIG)]
+    if not getattr(cls, "LEARNER_CONFIGS", None):       # actor_node: no learner of its own
+        return "\n".join(lines)
     algorithm = {f.name: d for f, d, _ in spec_of(cls.CONFIG)}["algorithm"]
     lcls = cls.LEARNER_CONFIGS[algorithm]
     others = sorted({f"{c.__name__} for {a}" for a, c in cls.LEARNER_CONFIGS.items() if c is not lcls})

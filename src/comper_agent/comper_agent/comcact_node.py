@@ -47,11 +47,13 @@ import numpy as np
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.convert import seq_to_numpy
 
+from .actor_node import ActorFleet
 from .agent_run import next_due, resume_text
 from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
 from .node_config import ComcactNodeConfig
 from .core.config import ComcactConfig, DDPGConfig
 from .core.memory_schedule import Row, reduce_due, rows_to_transitions, updates_before_reduce
+from .policy_weights import PolicyPublisher, policy_to_msg
 
 __all__ = ["ComcactNode", "ComcactNodeConfig", "main", "SUMMARY_QOS"]
 
@@ -71,8 +73,32 @@ class ComcactNode(AgentNode):
         super().__init__(node_name, **node_kwargs)
 
     def _configure(self) -> None:
-        self.comcact = self.uses_memory = self.uses_qt = self.p.algorithm == "comcact"
-        self.reducer = "qt_trainer" if self.comcact else "none"
+        p = self.p
+        self.comcact = self.uses_qt = p.algorithm == "comcact"
+        self.async_mode = p.mode == "async"
+        # async: the actors store into the memory node, so DDPG samples it too (the memory node reduces)
+        self.uses_memory = self.comcact or self.async_mode
+        self.reducer = "qt_trainer" if self.comcact else ("memory" if self.async_mode else "none")
+        if self.async_mode and p.restore_batch:
+            raise ValueError("restore_batch is a lock-step option (the re-stores would count as environment "
+                             "steps for the rate limiter); use mode:=lockstep")
+        self.policy_pub = (PolicyPublisher(f"{self.get_fully_qualified_name()}/policy", f"{self.get_name()}_policy")
+                           if self.async_mode else None)
+        self.fleet = None
+
+    def _embedded_params(self) -> tuple[dict, dict, dict]:
+        if not self.async_mode:
+            return {}, {}, {}
+        return {}, self._rate_limit(), {}
+
+    def _rate_limit(self) -> dict:
+        """async: the embedded memory node's rate limiter for replay_ratio (docs/comcact.md, Async mode)."""
+        p, c = self.p, self.cfg
+        spi = float(p.replay_ratio * c.batch_size)
+        # the band must hold the largest single call: an actor's store and a learner's prefetched sample
+        widest = max(spi * 10, c.batch_size * max(1, min(p.prefetch_batches, p.reduce_every)))
+        return {"samples_per_insert": spi, "rate_error_buffer": max(spi * p.rate_buffer_steps, widest, 1.0),
+                "min_size_to_sample": int(max(c.learning_starts, c.batch_size))}
 
     def _check_env(self, info) -> None:
         if info.discrete:
@@ -91,7 +117,7 @@ class ComcactNode(AgentNode):
         obs_dim = int(np.prod(self.obs_shape))
         self.learner = ComcactLearner(self.cfg, obs_dim, self.low, self.high)
         self.replay = None
-        if not self.comcact:
+        if not self.uses_memory:
             self.replay = ReplayBuffer(self.cfg.replay_size, self.obs_shape, (self.action_dim,),
                                        seed=self.cfg.seed)
         self._open_eval_env(action_out_of_range="clip")
@@ -135,6 +161,8 @@ class ComcactNode(AgentNode):
             self.evaluate()       # the untrained policy: the curve's first point
 
     def _loop(self) -> None:
+        if self.async_mode:
+            return self._loop_async()
         p = self.p
         obs = self._reset_env()
         while self.step < p.total_steps and not self.stop_event.is_set():
@@ -149,6 +177,70 @@ class ComcactNode(AgentNode):
                 self.next_eval += p.eval_every
             self._after_step()
         self._flush()
+
+    # ------------------------------------------------------------------------------ async mode
+    def _publish_policy(self, final: bool = False) -> None:
+        with self.ptimers("publish"):
+            msg = policy_to_msg(self.learner, version=self.learner.updates, env_steps=self.step, final=final)
+            msg.header.stamp = self.policy_pub.stamp()
+            self.policy_pub.publish(msg)
+        self.policies_published += 1
+
+    def _env_steps(self) -> int:
+        """Environment steps so far: transitions the actors stored since this run started."""
+        with self.ptimers("memory"):
+            return int(self.mem.stats()["transitions_stored"]) - self.steps_base
+
+    def _loop_async(self) -> None:
+        """mode:=async: publish the policy, start the actors (embedded), then update continuously; the
+        memory's rate limiter holds the update-to-data ratio, this loop only counts steps and evaluates."""
+        p = self.p
+        self.policies_published = 0
+        self.steps_base = int(self.mem.stats()["transitions_stored"]) - self.step
+        self._publish_policy()
+        if p.bringup == "embedded" and p.num_actors > 0:
+            left = p.total_steps - self.step
+            self.fleet = ActorFleet(
+                num_actors=p.num_actors, env_id=p.env_id, seed=int(self.cfg.seed), memory_node=p.memory_node,
+                policy_topic=self.policy_pub.topic_name, steps_each=-(-left // p.num_actors),
+                episode_end=self.episode_rule, log_dir=self.run_dir.path, startup_timeout_s=p.startup_timeout_s)
+            self.log.info(f"async: {p.num_actors} actor processes started (logs {self.run_dir.path}/actor_*.log), "
+                          f"rate limiter {self._rate_limit()}")
+        last_policy = time.monotonic()
+        since_count = 0
+        while self.step < p.total_steps and not self.stop_event.is_set():
+            if self.fleet is not None and self.fleet.failed():
+                raise RuntimeError("an actor failed: " + " | ".join(self.fleet.failed()))
+            before = self.update_count
+            self._train_step()
+            since_count += 1
+            if self.update_count == before:       # nothing to sample yet: the actors are filling the memory
+                time.sleep(0.01)
+            if since_count >= 20 or self.update_count == before:
+                self.step = max(self.step, self._env_steps())
+                since_count = 0
+            if time.monotonic() - last_policy >= p.policy_period_s:
+                self._publish_policy()
+                last_policy = time.monotonic()
+            if self.next_eval is not None and self.step >= self.next_eval:
+                self.evaluate()
+                self.next_eval = next_due(self.step, p.eval_every)
+            self._after_step()
+        self._publish_policy(final=True)
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        if self.policy_pub is not None:
+            self.policy_pub.close()
+            self.policy_pub = None
+
+    def _final_records(self, rc: int) -> None:
+        if self.fleet is not None:
+            codes = self.fleet.stop()
+            self.log.info(f"async: actors exited with {codes}")
+            self.metrics.write("actors", exit_codes=codes, policies_published=self.policies_published,
+                               updates=self.update_count, env_steps=self.step,
+                               update_to_data=self.update_count / max(1, self.step))
 
     def _finish(self, elapsed: float, steps: int, timers: dict) -> None:
         if self.evals:
@@ -281,12 +373,12 @@ class ComcactNode(AgentNode):
             return
         with self.ptimers("qt"):
             r = self.mem.reduce()
-            if self.p.qt_targets == "local" and r.qt_version > 0:
+            if self.comcact and self.p.qt_targets == "local" and r.qt_version > 0:
                 self.mem.wait_qt_model(r.qt_version)
 
     # ------------------------------------------------------------------------------ learning
     def _train_step(self) -> None:
-        if self.comcact:
+        if self.uses_memory:
             self.mem.collect(wait=False)      # reduce_overlap: a reduction that has answered
             got = self._sample()
             if got is None:
@@ -298,7 +390,9 @@ class ComcactNode(AgentNode):
             if reduce_due(self.since_reduce, self.p.reduce_every, self.rtm_size):
                 self._reduce()
             targets = None
-            if self.p.qt_targets == "rtm":
+            if not self.comcact:              # async DDPG: the memory is its replay, no QT step
+                pass
+            elif self.p.qt_targets == "rtm":
                 if self.rtm_size > 0 and batch.value_labels.size == len(batch):
                     targets = batch.value_labels
             else:

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 from comper_msgs_py.params import param
 from comper_sim.core import EPISODE_END_RULES
 
-__all__ = ["AgentRunConfig", "ComperNodeConfig", "ComcactNodeConfig", "QtTrainerNodeConfig", "redefault",
+__all__ = ["AgentRunConfig", "ComperNodeConfig", "ComcactNodeConfig", "QtTrainerNodeConfig", "ActorNodeConfig",
+           "redefault",
            "COMPER_ALGORITHMS"]
 
 COMPER_ALGORITHMS = ("comper", "comper_f", "comper_m", "dqn")
@@ -209,6 +210,48 @@ class ComcactNodeConfig(AgentRunConfig):
         250, "comcact: updates between 'qt_diagnostics' records in metrics.jsonl (and TensorBoard qt/...): the "
         "QT step's target against the DDPG target on the update's batch, the critic's own TD error, the "
         "sampled entries' label age and set sizes (docs/comcact.md); 0 = off", minimum=0)
+    mode: str = param(
+        "lockstep", "lockstep = one environment step, then one update, in this node (Algorithm 8); async = actor "
+        "nodes (actor_node: simulation + the current policy) store into the memory while this node samples and "
+        "updates continuously, held to replay_ratio by the memory's rate limiter (docs/comcact.md, Async mode)",
+        thesis="lockstep (Algorithm 8)", choices=("lockstep", "async"),
+        deviation="async: updates run concurrently with acting, on networks up to policy_period_s old in the "
+        "actors; the update-to-data ratio is held within the rate limiter's band instead of exactly 1")
+    num_actors: int = param(
+        1, "async: actor_node processes this node starts (embedded bring-up; distinct seeds seed + 1 + i); 0 = "
+        "actors are started separately (ros2 run comper_agent actor_node)", minimum=0, maximum=64)
+    policy_period_s: float = param(
+        1.0, "async: seconds between publications of the current actor and critic on ~/policy", minimum=0.01)
+    replay_ratio: float = param(
+        1.0, "async: updates per environment step the memory's rate limiter holds (samples_per_insert = "
+        "replay_ratio x batch_size, set on the embedded memory node)", thesis="1 (one update per step)",
+        minimum=0.01)
+    rate_buffer_steps: int = param(
+        200, "async: how many environment steps acting may run ahead of (or behind) learning before one side "
+        "waits (the rate limiter's error buffer, in steps)", minimum=1)
+
+
+@dataclass(frozen=True)
+class ActorNodeConfig:
+    """actor_node's parameters: an environment and the learner's current policy, storing into the memory
+    (comcact_node mode:=async). The networks' shape and noise come with the policy message."""
+
+    env_id: str = param("InvertedPendulum-v4", "gymnasium task (continuous actions); must be the learner's")
+    seed: int = param(0, "seed of the environment's resets and of the exploration noise", minimum=0)
+    actor_id: int = param(0, "this actor's number (episode ids are actor_id x 1e9 + episode)", minimum=0,
+                          maximum=1000)
+    memory_node: str = param("memory_node", "name (or /namespace/name) of the memory node to store into")
+    policy_topic: str = param("/comcact_node/policy", "the learner's PolicyWeights topic")
+    total_steps: int = param(0, "environment steps of this actor (0 = until the learner's final policy message "
+                                "or Ctrl-C)", minimum=0)
+    store_every: int = param(10, "steps per store call (an episode end flushes first)", minimum=1)
+    episode_end: str = param("standard", "episode end rule: standard, truncation_only, termination_only",
+                             choices=EPISODE_END_RULES)
+    startup_timeout_s: float = param(60.0, "seconds to wait for the memory node and the first policy", minimum=0.0)
+    service_timeout_s: float = param(120.0, "seconds per memory service answer", minimum=0.0)
+    rate_limit_timeout_s: float = param(
+        600.0, "seconds a store may wait for the learner (the memory's rate limiter) before the actor gives up",
+        minimum=0.0)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,289 @@
+"""actor_node: an environment and the learner's current policy, storing into the memory
+(comcact_node mode:=async; docs/comcact.md, "Async mode").
+
+    ros2 run comper_agent actor_node --ros-args -p env_id:=Hopper-v4 -p seed:=1 -p actor_id:=0 \\
+        -p memory_node:=memory_node -p policy_topic:=/comcact_node/policy
+
+It waits for the first PolicyWeights message on ``policy_topic`` (the learner publishes one at start
+and then every policy_period_s; transient local, so a late actor gets the latest), builds the same
+actor and critic from the message's config, and then, per step: mu(s) + OU noise (its own seed) ->
+its own environment (comper_sim.core.SimBridge, in this process) -> every ``store_every`` steps and at
+each episode end one ``<memory>/store`` call with the transitions labelled by the received critic
+(the learner's label rule). A newer policy message is loaded between steps. The memory's rate
+limiter may hold a store back while the learner catches up; the store then waits
+(``rate_limit_timeout_s``). Each finished episode is published on ``~/episodes`` (source train).
+
+It stops after ``total_steps`` (0 = no limit), on the learner's final policy message, or on
+Ctrl-C / SIGTERM, storing what it holds first; exit 0. No learning happens here.
+"""
+from __future__ import annotations
+
+import sys
+import threading
+import time
+
+import numpy as np
+from rclpy.node import Node
+
+from comper_memory.client import MemoryClient, RateLimitTimeout
+from comper_msgs.msg import EpisodeSummary, PolicyWeights
+from comper_msgs_py.ros_params import declare_config
+from comper_msgs_py.qos import RECORDED_QOS as SUMMARY_QOS
+from comper_msgs_py.service_client import ServiceError
+
+from .agent_main import run_main
+from .bringup import START_HINTS, Spinner
+from .core.memory_schedule import Row, rows_to_transitions
+from .node_config import ActorNodeConfig
+from .policy_weights import POLICY_QOS, config_of_policy, load_policy_msg
+
+__all__ = ["ActorNode", "ActorNodeConfig", "main"]
+
+EPISODE_ID_STRIDE = 1_000_000_000   # episode ids of actor k: k x stride + its own episode count
+
+
+class ActorNode(Node):
+    """See the module text. ``run()`` is the acting loop (main thread); the node itself is spun by
+    a background executor (policy subscription, episode publisher, memory client)."""
+
+    CONFIG = ActorNodeConfig
+
+    def __init__(self, node_name: str = "actor_node", **node_kwargs):
+        super().__init__(node_name, **node_kwargs)
+        self.p = p = declare_config(self, ActorNodeConfig)
+        self.stop_event = threading.Event()
+        self.log = self.get_logger()
+        self._latest: PolicyWeights | None = None
+        self._lock = threading.Lock()
+        self._have_policy = threading.Event()
+        self.create_subscription(PolicyWeights, p.policy_topic, self._on_policy, POLICY_QOS)
+        self.episode_pub = self.create_publisher(EpisodeSummary, "~/episodes", SUMMARY_QOS)
+        self.spinner = Spinner([self], self.context).start()
+        # short rate-limit waits, retried in _store: a held-back store still sees Ctrl-C and the final message
+        self.memory = MemoryClient(self, p.memory_node, timeout=p.service_timeout_s, rate_limit_timeout=1.0)
+        self.final_seen = threading.Event()
+        self.dropped = 0
+        self.run_id = f"actor{p.actor_id}"
+        self.steps = self.episodes = self.stored = 0
+        self.policy_version = -1
+        self.policy_loads = 0
+
+    def _on_policy(self, msg: PolicyWeights) -> None:
+        with self._lock:
+            self._latest = msg
+        if msg.final:
+            self.final_seen.set()
+        self._have_policy.set()
+
+    def _take_policy(self) -> PolicyWeights | None:
+        with self._lock:
+            msg, self._latest = self._latest, None
+        return msg
+
+    # ------------------------------------------------------------------------------ set-up
+    def _wait(self, what: str, ready, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while not ready():
+            if self.stop_event.is_set():
+                raise KeyboardInterrupt
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{what} did not come within {timeout:g} s")
+            time.sleep(0.05)
+
+    def _setup(self) -> None:
+        from comper_sim.core import SimBridge, SimConfig
+        from .core.comcact import ComcactLearner
+        from .core.config import ComcactConfig, DDPGConfig
+        from .core.networks import configure_torch
+        p = self.p
+        self._wait(f"the memory node {p.memory_node!r} (start it with: "
+                   f"{START_HINTS['memory'].format(name=p.memory_node)})",
+                   lambda: self.memory.wait_for_service(0.5), p.startup_timeout_s)
+        self._wait(f"the first policy message on {p.policy_topic} (is the learner running, mode:=async?)",
+                   self._have_policy.is_set, p.startup_timeout_s)
+        msg = self._take_policy()
+        cfg = config_of_policy(msg, ComcactConfig)
+        if cfg.variant == "ddpg":
+            cfg = config_of_policy(msg, DDPGConfig)
+        configure_torch(1)
+        self.env = SimBridge(SimConfig(env_id=p.env_id, seed=p.seed, episode_end=p.episode_end,
+                                       run_id=self.run_id, action_out_of_range="clip"))
+        info = self.env.info()
+        if info.discrete:
+            raise ValueError(f"{p.env_id} has discrete actions; actor_node acts for COMCACT / DDPG")
+        from dataclasses import replace
+        self.policy = ComcactLearner(replace(cfg, seed=p.seed, num_threads=1), int(np.prod(info.observation_shape)),
+                                     info.action_low, info.action_high)
+        self._load(msg)
+
+    def _load(self, msg: PolicyWeights) -> bool:
+        if msg.final:
+            return False
+        if int(msg.version) != self.policy_version:
+            load_policy_msg(self.policy, msg)
+            self.policy_version = int(msg.version)
+            self.policy_loads += 1
+        return True
+
+    # ------------------------------------------------------------------------------ loop
+    def run(self) -> int:
+        p = self.p
+        try:
+            self._setup()
+        except KeyboardInterrupt:
+            return 0
+        self.log.info(f"actor {p.actor_id} on {p.env_id} (seed {p.seed}): storing into {p.memory_node}, "
+                      f"policy v{self.policy_version} from {p.policy_topic}"
+                      + (f", {p.total_steps} steps" if p.total_steps else ""))
+        t0 = time.monotonic()
+        rows: list[Row] = []
+        obs, _ = self.env.reset(p.seed)
+        self.policy.reset_noise()
+        ep_return, ep_len = 0.0, 0
+        rc = 0
+        try:
+            while not self.stop_event.is_set() and (p.total_steps == 0 or self.steps < p.total_steps):
+                msg = self._take_policy()
+                if msg is not None and not self._load(msg):
+                    self.log.info(f"the learner finished (final policy message): stopping at step {self.steps}")
+                    break
+                a = self.policy.act(obs, explore=True)
+                r = self.env.step(a)
+                rows.append(Row(obs, a, r.reward, r.observation, r.terminated, r.truncated, self.steps))
+                self.steps += 1
+                ep_return += float(r.reward)
+                ep_len += 1
+                if r.episode_over or len(rows) >= p.store_every:
+                    self._store(rows)
+                    rows = []
+                if r.episode_over:
+                    self._episode_done(ep_return, ep_len, r.terminated, r.truncated, t0)
+                    ep_return, ep_len = 0.0, 0
+                    obs, _ = self.env.reset(None)
+                    self.policy.reset_noise()
+                else:
+                    obs = r.observation
+            if rows:
+                self._store(rows)
+        except ServiceError as exc:
+            if not self.stop_event.is_set():
+                err = self.spinner.error
+                self.log.error(f"stopping: {exc}" + (f" (this node's executor stopped: {type(err).__name__}: {err})"
+                                                     if err is not None else ""))
+                rc = 1
+        dt = time.monotonic() - t0
+        self.log.info(f"done: {self.steps} steps ({self.steps / max(dt, 1e-9):.1f} steps/s), {self.episodes} "
+                      f"episodes, {self.stored} transitions stored, {self.policy_loads} policies loaded "
+                      f"(last v{self.policy_version}), {self.memory.rate_limited_s:.1f} s waiting for the learner"
+                      + (f", {self.dropped} not stored (the learner had stopped)" if self.dropped else ""))
+        return rc
+
+    def _store(self, rows: list[Row]) -> None:
+        t = rows_to_transitions(rows, self.p.actor_id * EPISODE_ID_STRIDE + self.episodes, self.run_id)
+        t.value_labels = self.policy.value_labels(t)
+        deadline = time.monotonic() + self.p.rate_limit_timeout_s
+        while True:
+            try:
+                self.memory.store(t)
+                break
+            except RateLimitTimeout:
+                if self.stop_event.is_set() or self.final_seen.is_set():
+                    self.dropped += len(t)     # the learner no longer samples: nobody would learn from them
+                    self.log.info(f"{len(t)} transitions not stored: the learner has stopped sampling")
+                    return
+                if time.monotonic() > deadline:
+                    raise
+        self.stored += len(t)
+
+    def _episode_done(self, ret: float, length: int, terminated: bool, truncated: bool, t0: float) -> None:
+        msg = EpisodeSummary(run_id=self.run_id, env_id=self.p.env_id, source="train",
+                             episode_id=self.p.actor_id * EPISODE_ID_STRIDE + self.episodes,
+                             episode_return=float(ret), length=int(length), frames=int(length),
+                             terminated=bool(terminated), truncated=bool(truncated), global_step=int(self.steps),
+                             global_frames=int(self.steps), wall_time_s=float(time.monotonic() - t0))
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.episode_pub.publish(msg)
+        self.episodes += 1
+
+    def shutdown(self) -> None:
+        try:
+            self.memory.close()
+        except Exception:
+            pass
+        self.spinner.stop()
+        self.destroy_node()
+
+
+def main(args=None) -> int:
+    """Entry point of ``ros2 run comper_agent actor_node``: 0 done or stopped, 1 cannot start / failed."""
+    return run_main(ActorNode, "actor_node", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+
+
+class ActorFleet:
+    """The actor_node processes a learner starts itself (comcact_node mode:=async, embedded bring-up):
+    ``ros2 run comper_agent actor_node`` children with seeds seed + 1 + i, each killed with its
+    parent (PR_SET_PDEATHSIG) and logged to ``<run dir>/actor_<i>.log``."""
+
+    def __init__(self, *, num_actors: int, env_id: str, seed: int, memory_node: str, policy_topic: str,
+                 steps_each: int, episode_end: str, log_dir, startup_timeout_s: float):
+        import functools
+        import os
+        import shutil
+        import subprocess
+        from pathlib import Path
+
+        from .recording_link import _die_with_parent
+        self.procs, self.logs = [], []
+        ros2 = shutil.which("ros2") or "ros2"
+        for i in range(num_actors):
+            log_path = Path(log_dir) / f"actor_{i}.log"
+            log = open(log_path, "ab")
+            cmd = [ros2, "run", "comper_agent", "actor_node", "--ros-args",
+                   "-r", f"__node:=actor_{i}_{os.getpid()}", "-p", f"env_id:={env_id}", "-p", f"seed:={seed + 1 + i}",
+                   "-p", f"actor_id:={i}", "-p", f"memory_node:={memory_node}", "-p", f"policy_topic:={policy_topic}",
+                   "-p", f"total_steps:={steps_each}", "-p", f"episode_end:={episode_end}",
+                   "-p", f"startup_timeout_s:={startup_timeout_s}"]
+            self.procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                               preexec_fn=functools.partial(_die_with_parent, os.getpid())))
+            self.logs.append((log, log_path))
+
+    def alive(self) -> int:
+        return sum(p.poll() is None for p in self.procs)
+
+    def failed(self) -> list[str]:
+        """'actor i: exit n, <log tail>' for each actor that exited with an error."""
+        out = []
+        for i, (p, (_, path)) in enumerate(zip(self.procs, self.logs)):
+            rc = p.poll()
+            if rc not in (None, 0):
+                out.append(f"actor {i}: exit {rc}; {path}: {path.read_text(errors='replace')[-800:]}")
+        return out
+
+    def stop(self, timeout: float = 30.0, grace: float = 10.0) -> list[int | None]:
+        """Wait up to `grace` for the actors to end on their own (their step budgets are spent when the
+        learner stops), then SIGINT (they store what they hold and exit 0), SIGKILL after `timeout`;
+        exit codes."""
+        import signal
+        import subprocess
+        import time as _t
+        deadline = _t.monotonic() + grace
+        while self.alive() and _t.monotonic() < deadline:
+            _t.sleep(0.1)
+        for p in self.procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        deadline = _t.monotonic() + timeout
+        codes = []
+        for p in self.procs:
+            try:
+                codes.append(p.wait(max(0.1, deadline - _t.monotonic())))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                codes.append(p.wait())
+        for log, _ in self.logs:
+            log.close()
+        return codes
