@@ -29,7 +29,8 @@ _COMMON = {"bringup": "embedded", "episode_end": "standard", "runs_root": "runs"
 COMCACT = {**_COMMON, "algorithm": "comcact", "env_id": "InvertedPendulum-v4", "total_steps": 50_000,
            "warmup_steps": 0, "store_every": 10, "reduce_every": 10, "reduce_batch": 50_000, "qt_epochs": 0,
            "qt_targets": "local", "qt_wait_s": 2.0, "eval_every": 5_000, "eval_episodes": 10, "eval_seed": -1,
-           "checkpoint_every": 0, "progress_period_s": 5.0, "diagnostics_every": 250, "restore_batch": False}
+           "checkpoint_every": 0, "progress_period_s": 5.0, "diagnostics_every": 250, "restore_batch": False,
+           "mode": "lockstep", "num_actors": 1, "policy_period_s": 1.0, "replay_ratio": 1.0, "rate_buffer_steps": 200}
 COMPER = {**_COMMON, "algorithm": "comper", "env_id": "ALE/Freeway-v5", "total_frames": 100_000, "max_steps": 0,
           "reduce_every": 100, "reduce_batch": 1_000, "qt_epochs": 0, "qt_targets": "local", "qt_wait_s": 5.0,
           "reducer": "auto", "restore_batch": True, "store_every": 4, "stats_every": 1_000,
