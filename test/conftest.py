@@ -33,13 +33,15 @@ def ros2_command() -> str:
 class NodeProcess:
     """A node started with `ros2 run` in its own process group; output goes to a log file."""
 
-    def __init__(self, package: str, executable: str, *args: str, log_dir: Path, name: str | None = None):
+    def __init__(self, package: str, executable: str, *args: str, log_dir: Path, name: str | None = None,
+                 prefix: tuple = (), env: dict | None = None):
+        """prefix: a command put in front (e.g. ``ip netns exec <ns>``); env: variables set on top of ours."""
         self.name = name or executable
         self.log_path = log_dir / f"{self.name}.log"
         self._log = open(self.log_path, "wb")
-        self.proc = subprocess.Popen([ros2_command(), "run", package, executable, *args],
+        self.proc = subprocess.Popen([*prefix, ros2_command(), "run", package, executable, *args],
                                      stdout=self._log, stderr=subprocess.STDOUT,
-                                     start_new_session=True, env=os.environ.copy())
+                                     start_new_session=True, env={**os.environ, **(env or {})})
 
     def log(self) -> str:
         self._log.flush()
@@ -77,8 +79,9 @@ def launch(tmp_path):
     """launch(package, executable, *args) -> NodeProcess; every process is stopped at teardown."""
     started: list[NodeProcess] = []
 
-    def _launch(package: str, executable: str, *args: str, name: str | None = None) -> NodeProcess:
-        p = NodeProcess(package, executable, *args, log_dir=tmp_path, name=name)
+    def _launch(package: str, executable: str, *args: str, name: str | None = None, prefix: tuple = (),
+                env: dict | None = None) -> NodeProcess:
+        p = NodeProcess(package, executable, *args, log_dir=tmp_path, name=name, prefix=prefix, env=env)
         started.append(p)
         return p
 
