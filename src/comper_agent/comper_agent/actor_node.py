@@ -42,6 +42,23 @@ __all__ = ["ActorNode", "ActorNodeConfig", "main"]
 EPISODE_ID_STRIDE = 1_000_000_000   # episode ids of actor k: k x stride + its own episode count
 
 
+class _RandomPolicy:
+    """policy:=random: uniform actions within the bounds, label 0 (the memory's default label)."""
+
+    def __init__(self, low, high, seed: int):
+        self.low, self.high = np.asarray(low, np.float32), np.asarray(high, np.float32)
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, obs, explore: bool = True) -> np.ndarray:
+        return self.rng.uniform(self.low, self.high).astype(np.float32)
+
+    def value_labels(self, t) -> np.ndarray:
+        return np.zeros(len(t), np.float32)
+
+    def reset_noise(self) -> None:
+        pass
+
+
 class ActorNode(Node):
     """See the module text. ``run()`` is the acting loop (main thread); the node itself is spun by
     a background executor (policy subscription, episode publisher, memory client)."""
@@ -99,6 +116,14 @@ class ActorNode(Node):
         self._wait(f"the memory node {p.memory_node!r} (start it with: "
                    f"{START_HINTS['memory'].format(name=p.memory_node)})",
                    lambda: self.memory.wait_for_service(0.5), p.startup_timeout_s)
+        self.env = SimBridge(SimConfig(env_id=p.env_id, seed=p.seed, episode_end=p.episode_end,
+                                       run_id=self.run_id, action_out_of_range="clip"))
+        info = self.env.info()
+        if info.discrete:
+            raise ValueError(f"{p.env_id} has discrete actions; actor_node acts for COMCACT / DDPG")
+        if p.policy == "random":
+            self.policy = _RandomPolicy(info.action_low, info.action_high, p.seed)
+            return
         self._wait(f"the first policy message on {p.policy_topic} (is the learner running, mode:=async?)",
                    self._have_policy.is_set, p.startup_timeout_s)
         msg = self._take_policy()
@@ -106,11 +131,6 @@ class ActorNode(Node):
         if cfg.variant == "ddpg":
             cfg = config_of_policy(msg, DDPGConfig)
         configure_torch(1)
-        self.env = SimBridge(SimConfig(env_id=p.env_id, seed=p.seed, episode_end=p.episode_end,
-                                       run_id=self.run_id, action_out_of_range="clip"))
-        info = self.env.info()
-        if info.discrete:
-            raise ValueError(f"{p.env_id} has discrete actions; actor_node acts for COMCACT / DDPG")
         from dataclasses import replace
         self.policy = ComcactLearner(replace(cfg, seed=p.seed, num_threads=1), int(np.prod(info.observation_shape)),
                                      info.action_low, info.action_high)
@@ -133,7 +153,8 @@ class ActorNode(Node):
         except KeyboardInterrupt:
             return 0
         self.log.info(f"actor {p.actor_id} on {p.env_id} (seed {p.seed}): storing into {p.memory_node}, "
-                      f"policy v{self.policy_version} from {p.policy_topic}"
+                      + (f"policy v{self.policy_version} from {p.policy_topic}" if p.policy == "learner"
+                         else "random actions")
                       + (f", {p.total_steps} steps" if p.total_steps else ""))
         t0 = time.monotonic()
         rows: list[Row] = []
@@ -143,7 +164,7 @@ class ActorNode(Node):
         rc = 0
         try:
             while not self.stop_event.is_set() and (p.total_steps == 0 or self.steps < p.total_steps):
-                msg = self._take_policy()
+                msg = self._take_policy() if p.policy == "learner" else None
                 if msg is not None and not self._load(msg):
                     self.log.info(f"the learner finished (final policy message): stopping at step {self.steps}")
                     break

@@ -226,6 +226,11 @@ class ComcactNode(AgentNode):
                 self.evaluate()
                 self.next_eval = next_due(self.step, p.eval_every)
             self._after_step()
+        # the updates still owed for the last steps (the rate limiter lets learning trail acting by up to
+        # rate_buffer_steps): as in lock step, every step gets its replay_ratio updates
+        owed = int(p.replay_ratio * max(0, self.step - self.cfg.learning_starts))
+        while self.update_count < owed and not self.stop_event.is_set():
+            self._train_step()
         self._publish_policy(final=True)
 
     def shutdown(self) -> None:

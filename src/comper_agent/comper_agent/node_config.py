@@ -245,6 +245,9 @@ class ActorNodeConfig:
     total_steps: int = param(0, "environment steps of this actor (0 = until the learner's final policy message "
                                 "or Ctrl-C)", minimum=0)
     store_every: int = param(10, "steps per store call (an episode end flushes first)", minimum=1)
+    policy: str = param("learner", "learner = act with the learner's policy from policy_topic; random = uniform "
+                        "random actions, label 0, no learner needed (throughput measurements, warm-up data)",
+                        choices=("learner", "random"))
     episode_end: str = param("standard", "episode end rule: standard, truncation_only, termination_only",
                              choices=EPISODE_END_RULES)
     startup_timeout_s: float = param(60.0, "seconds to wait for the memory node and the first policy", minimum=0.0)
