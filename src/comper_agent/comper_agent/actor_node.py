@@ -29,7 +29,7 @@ from comper_memory.client import MemoryClient, RateLimitTimeout
 from comper_msgs.msg import EpisodeSummary, PolicyWeights
 from comper_msgs_py.ros_params import declare_config
 from comper_msgs_py.qos import RECORDED_QOS as SUMMARY_QOS
-from comper_msgs_py.service_client import ServiceError
+from comper_msgs_py.service_client import ServiceError, ServiceTimeout
 
 from .agent_main import run_main
 from .bringup import START_HINTS, Spinner
@@ -203,6 +203,7 @@ class ActorNode(Node):
         t = rows_to_transitions(rows, self.p.actor_id * EPISODE_ID_STRIDE + self.episodes, self.run_id)
         t.value_labels = self.policy.value_labels(t)
         deadline = time.monotonic() + self.p.rate_limit_timeout_s
+        lost = 0
         while True:
             try:
                 self.memory.store(t)
@@ -214,6 +215,14 @@ class ActorNode(Node):
                     return
                 if time.monotonic() > deadline:
                     raise
+            except ServiceTimeout:
+                # an answer lost on the way: send again (if the first arrived after all, these transitions join
+                # their own identities a second time and count twice in transitions_stored)
+                lost += 1
+                if lost > 3 or self.stop_event.is_set():
+                    raise
+                self.log.warning(f"store of {len(t)} transitions: no answer within {self.p.service_timeout_s:g} s; "
+                                 f"sending it again ({lost}/3)")
         self.stored += len(t)
 
     def _episode_done(self, ret: float, length: int, terminated: bool, truncated: bool, t0: float) -> None:
@@ -268,7 +277,12 @@ class ActorFleet:
                    "-p", f"actor_id:={i}", "-p", f"memory_node:={memory_node}", "-p", f"policy_topic:={policy_topic}",
                    "-p", f"total_steps:={steps_each}", "-p", f"episode_end:={episode_end}",
                    "-p", f"startup_timeout_s:={startup_timeout_s}"]
-            self.procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+            # UDP between the actors and this process: over Fast DDS's shared memory, answers of the memory node
+            # to an actor were lost now and then on the loaded 2-core machine (a store waited for ever); with UDP
+            # only, the same runs passed (docs/comcact.md, Async mode)
+            env = {**os.environ}
+            env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
+            self.procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
                                                preexec_fn=functools.partial(_die_with_parent, os.getpid())))
             self.logs.append((log, log_path))
 
@@ -284,9 +298,9 @@ class ActorFleet:
                 out.append(f"actor {i}: exit {rc}; {path}: {path.read_text(errors='replace')[-800:]}")
         return out
 
-    def stop(self, timeout: float = 30.0, grace: float = 10.0) -> list[int | None]:
+    def stop(self, timeout: float = 30.0, grace: float = 60.0) -> list[int | None]:
         """Wait up to `grace` for the actors to end on their own (their step budgets are spent when the
-        learner stops), then SIGINT (they store what they hold and exit 0), SIGKILL after `timeout`;
+        learner stops; tearing a node's DDS participant down took over 10 s on the loaded 2-core machine), then SIGINT (they store what they hold and exit 0), SIGKILL after `timeout`;
         exit codes."""
         import signal
         import subprocess

@@ -251,7 +251,8 @@ class ActorNodeConfig:
     episode_end: str = param("standard", "episode end rule: standard, truncation_only, termination_only",
                              choices=EPISODE_END_RULES)
     startup_timeout_s: float = param(60.0, "seconds to wait for the memory node and the first policy", minimum=0.0)
-    service_timeout_s: float = param(120.0, "seconds per memory service answer", minimum=0.0)
+    service_timeout_s: float = param(20.0, "seconds per memory service answer (a store without an answer is sent "
+                                           "again, up to 3 times)", minimum=0.0)
     rate_limit_timeout_s: float = param(
         600.0, "seconds a store may wait for the learner (the memory's rate limiter) before the actor gives up",
         minimum=0.0)
