@@ -279,7 +279,7 @@ class ActorFleet:
                    "-p", f"startup_timeout_s:={startup_timeout_s}"]
             # UDP between the actors and this process: over Fast DDS's shared memory, answers of the memory node
             # to an actor were lost now and then on the loaded 2-core machine (a store waited for ever); with UDP
-            # only, the same runs passed (docs/comcact.md, Async mode)
+            # only it was rarer (docs/comcact.md, Async mode; the actor also re-sends a store whose answer is lost)
             env = {**os.environ}
             env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
             self.procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
