@@ -209,8 +209,9 @@ class ComcactNode(AgentNode):
         last_policy = time.monotonic()
         since_count = 0
         while self.step < p.total_steps and not self.stop_event.is_set():
-            if self.fleet is not None and self.fleet.failed():
-                raise RuntimeError("an actor failed: " + " | ".join(self.fleet.failed()))
+            failed = self.fleet.failed() if self.fleet is not None else []
+            if failed:
+                raise RuntimeError("an actor failed: " + " | ".join(failed))
             before = self.update_count
             self._train_step()
             since_count += 1
