@@ -176,14 +176,14 @@ def env_run(env_id: str, n_episodes: int, *, seed: int = 0, max_episode_steps: i
 
 def write_run_dir(root, transitions, summaries, *, env_id: str, algorithm: str = "comcact", seed: int = 0,
                   env: dict | None = None, learner: dict | None = None) -> Path:
-    """A run directory as a learner leaves it: <root>/<run_id>/config.yaml (algorithm, params with seed and
-    env_id, the env description, learner) and the run's bag in <root>/<run_id>/bag."""
+    """A run directory as a learner leaves it: <root>/<run_id>/config.yaml (algorithm, params with env_id, the
+    env description, the learner config with its seed) and the run's bag in <root>/<run_id>/bag."""
     import yaml
     run = Path(root) / transitions.run_id
     run.mkdir(parents=True)
     (run / "config.yaml").write_text(yaml.safe_dump({
-        "algorithm": algorithm, "params": {"seed": seed, "env_id": env_id, "run_id": transitions.run_id},
-        "env": {"env_id": env_id, **(env or {})}, "learner": learner or {}}))
+        "algorithm": algorithm, "params": {"env_id": env_id, "run_id": transitions.run_id, "eval_seed": -1},
+        "env": {"env_id": env_id, **(env or {})}, "learner": {"seed": seed, **(learner or {})}}))
     write_run_bag(run / "bag", transitions, summaries, env_id=env_id, algorithm=algorithm)
     return run
 

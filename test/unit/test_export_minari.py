@@ -71,7 +71,7 @@ def test_bag_of_real_cartpole_episodes_loads_with_minari(tmp_path, datasets, cap
 def test_run_directory_carries_seed_and_action_bounds(tmp_path, datasets):
     t, summ = env_run("Pendulum-v1", 3, seed=7, max_episode_steps=40, run_id="pend-s7")
     run = write_run_dir(tmp_path / "runs", t, summ, env_id="Pendulum-v1", seed=7,
-                        env={"action_low": [-2.0], "action_high": [2.0]})
+                        env={"action_low": [-2.0], "action_high": [2.0]}, learner={"reward_clip": "none"})
     made = bag_tools.export_minari([run], dataset_id="test/pendulum-v2")
     assert [(d["dataset_id"], d["seed"], d["total_episodes"]) for d in made] == [("test/pendulum-v2", 7, 3)]
     ds = minari.load_dataset("test/pendulum-v2")
@@ -80,6 +80,7 @@ def test_run_directory_carries_seed_and_action_bounds(tmp_path, datasets):
     assert ds.action_space.low.tolist() == [-2.0] and ds.action_space.high.tolist() == [2.0]
     c = ds.storage.metadata["comper"]
     assert c["seed"] == 7 and c["algorithm"] == "comcact" and c["source_bags"] == [str(run / "bag")]
+    assert c["reward_clip_in_learner"] == "none"
 
 
 def test_refuses_an_existing_id_and_leaves_nothing_half_written(tmp_path, datasets, capsys):

@@ -235,10 +235,11 @@ def export_minari(paths, *, dataset_id: str | None = None, run_id: str | None = 
         if not buffers:
             raise ValueError(f"run {rid}: no complete episode to export (--include-incomplete exports cut ones)")
         spec = _env_spec(run.env_id)
-        seed = params.get("seed")
+        learner = cfg.get("learner") or {}
+        seed = learner.get("seed", params.get("seed"))   # the learners keep it in their learner config
         comper = {"run_id": rid, "env_id": run.env_id, "algorithm": run.algorithm, "seed": seed,
                   "suite_version": _suite_version(), "source_bags": [str(b) for b in run.bags],
-                  "rewards": _REWARD_NOTE, "reward_clip_in_learner": (cfg.get("learner") or {}).get("reward_clip"),
+                  "rewards": _REWARD_NOTE, "reward_clip_in_learner": learner.get("reward_clip"),
                   "observations": f"{t.states.dtype} {list(t.states.shape[1:])} as recorded (the agent's "
                                   "observation after its preprocessing)",
                   "episode_metadata": "each episode's metadata: run_id, episode_id (the agent's), length, "

@@ -19,6 +19,11 @@ therefore leaves a bag that opens with any rosbag2 reader and holds every messag
 the last split (at most ``max_file_duration_s`` old). ``repair_bag`` rebuilds ``metadata.yaml``
 from the complete files present (e.g. after a kill between the rename and the metadata update).
 
+Files are zstd-compressed by default (MCAP chunk compression, as ``ros2 bag record`` writes it;
+sqlite3: rosbag2 per-message compression) and every MCAP chunk carries the CRC32 of its records
+(``_CrcMcapWriter``: rosbags writes 0, "no CRC"), which readers verify; ``check_mcap_file`` finds a
+damaged chunk and its byte offset.
+
 Types: ``comper_typestore()`` is the ROS 2 Jazzy typestore of rosbags plus the comper_msgs
 types parsed from the installed ``.msg`` files. ``Writer.add_connection`` embeds the full
 definition (nested ``comper_msgs/Array``, ``std_msgs/Header``, ``builtin_interfaces/Time``) in
@@ -600,7 +605,7 @@ class RecorderConfig:
     storage: str = _param("mcap", "rosbag2 storage plugin", choices=("mcap", "sqlite3"))
     compression: str = _param(
         "zstd", "zstd: compressed bag as `ros2 bag record` writes it (mcap: zstd chunks, the MCAP storage's "
-                "own compression; sqlite3: rosbag2 per-message zstd); none: uncompressed",
+                "own compression; sqlite3: rosbag2 per-message zstd); none: uncompressed.",
         choices=COMPRESSIONS)
     max_file_size_mb: float = _param(256.0, "split the bag when the open file holds this many MB "
                                             "(rosbag2 max_bagfile_size); 0 = never", minimum=0.0)
