@@ -96,3 +96,16 @@ def test_refuses_an_existing_id_and_leaves_nothing_half_written(tmp_path, datase
     # only the first export (and minari's namespace record)
     assert sorted(p.name for p in (datasets / "tests").iterdir()) == ["dup-v0", "namespace_metadata.json"]
     assert minari.load_dataset("tests/dup-v0").total_episodes == 2
+
+
+def test_episodes_with_missing_steps_are_left_out_and_counted(tmp_path, datasets, capsys):
+    t, summ = env_run("CartPole-v1", 4, seed=5, max_episode_steps=20, run_id="gap")
+    a = summ[0]["length"]
+    keep = np.ones(len(t), bool)
+    keep[a + 2] = False                       # a step lost from the middle of episode 1
+    bag = write_run_bag(tmp_path / "bag", t.take(np.flatnonzero(keep)), summ, env_id="CartPole-v1")
+    assert bag_tools.export_dataset_main([str(bag), "--dataset-id", "tests/gap-v0"]) == 0
+    assert "(1 episodes with missing steps left out)" in capsys.readouterr().out
+    ds = minari.load_dataset("tests/gap-v0")
+    _assert_same_episodes(ds, t.take(np.flatnonzero(~np.isin(t.episode_ids, [1]))), summ[:1] + summ[2:])
+    assert ds.storage.metadata["comper"]["episodes_left_out_with_gaps"] == 1

@@ -191,8 +191,10 @@ def export_minari(paths, *, dataset_id: str | None = None, run_id: str | None = 
     is the final next_state), actions [T], rewards [T], terminations [T] and truncations [T] kept apart.
     Paths are bags or run directories; a run directory's config.yaml supplies the seed, the env
     description (action bounds, number of actions) and the learner's reward clipping. Incomplete trailing
-    episodes (cut by the end of the recording) are left out unless include_incomplete. A dataset id that
-    exists is refused; a failed export removes what it created. Returns one summary dict per dataset."""
+    episodes (cut by the end of the recording) are left out unless include_incomplete, and so are episodes
+    with steps missing from the recording (not contiguous: no observation sequence). A dataset id that
+    exists is refused before anything is written; a failed export removes what it created. Returns one
+    summary dict per dataset."""
     import warnings
 
     import minari
@@ -206,21 +208,27 @@ def export_minari(paths, *, dataset_id: str | None = None, run_id: str | None = 
     if dataset_id and len(runs) > 1:
         raise ValueError(f"--dataset-id names one dataset but the bags hold {len(runs)} runs "
                          f"({', '.join(runs)}); pick one with --run-id")
+    ids = {rid: dataset_id or default_dataset_id(run) for rid, run in runs.items()}
+    for did in ids.values():    # every id checked before anything is written
+        minari.dataset.minari_dataset.parse_dataset_id(did)   # ValueError: malformed id
+        if Path(get_dataset_path(did)).exists():
+            raise ValueError(f"Minari dataset {did} exists already ({get_dataset_path(did)}); choose another "
+                             "--dataset-id or version")
     out = []
     for rid, run in runs.items():
-        did = dataset_id or default_dataset_id(run)
-        minari.dataset.minari_dataset.parse_dataset_id(did)   # ValueError: malformed id
+        did = ids[rid]
         target = Path(get_dataset_path(did))
-        if target.exists():
-            raise ValueError(f"Minari dataset {did} exists already ({target}); choose another --dataset-id or version")
         t = run.transitions
         cfg = _run_config(run)
         params, env_cfg = cfg.get("params") or {}, cfg.get("env") or {}
         obs_space, act_space = _spaces(t, env_cfg)
         discrete = act_space.shape == ()     # Discrete
-        buffers, episodes = [], []
+        buffers, episodes, gaps = [], [], 0
         for e in offline.reconstruct_episodes(t):
             if not e.complete and not include_incomplete:
+                continue
+            if not e.contiguous:   # steps missing from the recording: no observation sequence to give
+                gaps += 1
                 continue
             i = e.index
             a = np.asarray(t.actions[i])
@@ -230,7 +238,7 @@ def export_minari(paths, *, dataset_id: str | None = None, run_id: str | None = 
                 rewards=np.asarray(t.rewards[i], np.float32), terminations=np.asarray(t.terminated[i], bool),
                 truncations=np.asarray(t.truncated[i], bool)))
             episodes.append({"run_id": rid, "episode_id": e.episode_id, "length": e.length,
-                             "return": e.episode_return, "complete": e.complete, "contiguous": e.contiguous,
+                             "return": e.episode_return, "complete": e.complete,
                              "first_step": int(t.steps[i[0]]) if t.steps.size else -1})
         if not buffers:
             raise ValueError(f"run {rid}: no complete episode to export (--include-incomplete exports cut ones)")
@@ -243,7 +251,8 @@ def export_minari(paths, *, dataset_id: str | None = None, run_id: str | None = 
                   "observations": f"{t.states.dtype} {list(t.states.shape[1:])} as recorded (the agent's "
                                   "observation after its preprocessing)",
                   "episode_metadata": "each episode's metadata: run_id, episode_id (the agent's), length, "
-                                      "return (float64 sum), complete, contiguous, first_step"}
+                                      "return (float64 sum), complete, first_step",
+                  "episodes_left_out_with_gaps": gaps}
         try:
             with warnings.catch_warnings():
                 # minari's notes on optional fields (author, code_permalink, eval_env) are not errors here
@@ -263,7 +272,7 @@ def export_minari(paths, *, dataset_id: str | None = None, run_id: str | None = 
             raise
         out.append({"dataset_id": did, "path": str(target), "run_id": rid, "env_id": run.env_id,
                     "env_spec": spec is not None, "total_episodes": ds.total_episodes,
-                    "total_steps": ds.total_steps, "seed": seed})
+                    "total_steps": ds.total_steps, "seed": seed, "left_out_with_gaps": gaps})
     return out
 
 
@@ -292,7 +301,8 @@ def export_dataset_main(argv=None) -> int:
         print(f"export_dataset: {exc}", file=sys.stderr)
         return 1
     for d in made:
-        print(f"{d['run_id']}: {d['total_episodes']} episodes, {d['total_steps']} steps -> Minari dataset "
+        gaps = f" ({d['left_out_with_gaps']} episodes with missing steps left out)" if d["left_out_with_gaps"] else ""
+        print(f"{d['run_id']}: {d['total_episodes']} episodes, {d['total_steps']} steps{gaps} -> Minari dataset "
               f"{d['dataset_id']} ({d['path']}); minari.load_dataset({d['dataset_id']!r})")
     return 0
 
