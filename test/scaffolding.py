@@ -14,7 +14,8 @@ from comper_agent.recording import ChunkedBagWriter, comper_typestore, make_qos
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.qos import RECORDED_QOS
 
-__all__ = ["synthetic_run", "write_run_bag", "transitions_cdr", "episode_cdr", "evaluation_cdr", "EpisodeTopics"]
+__all__ = ["synthetic_run", "write_run_bag", "transitions_cdr", "episode_cdr", "evaluation_cdr", "EpisodeTopics",
+           "env_run", "write_run_dir"]
 
 
 def synthetic_run(n_steps: int, *, obs_dim: int = 11, action_dim: int = 3, seed: int = 0,
@@ -113,13 +114,14 @@ def evaluation_cdr(store, stamp_ns: int = 0, *, returns, lengths, **fields) -> b
 
 def write_run_bag(path, transitions, summaries, evaluations=(), *, agent: str = "comcact_node",
                   env_id: str = "Hopper-v4", algorithm: str = "comcact", storage: str = "mcap",
-                  max_file_size_bytes: int = 256 * 2**20) -> Path:
+                  max_file_size_bytes: int = 256 * 2**20, compression: str = "zstd") -> Path:
     """Write a run as an agent + recorder would: per episode one TransitionBatch then its
     EpisodeSummary; evaluations: (global_step, returns, lengths)."""
     import numpy as np
     store = comper_typestore()
     ts = 1_700_000_000 * 10**9
-    with ChunkedBagWriter(path, storage=storage, max_file_duration_s=0, max_file_size_bytes=max_file_size_bytes,
+    with ChunkedBagWriter(path, storage=storage, compression=compression, max_file_duration_s=0,
+                          max_file_size_bytes=max_file_size_bytes,
                           custom_data={"run_id": transitions.run_id, "algorithm": algorithm}) as w:
         ht = w.add_topic(f"/{agent}/transitions", "comper_msgs/msg/TransitionBatch", [make_qos()])
         he = w.add_topic(f"/{agent}/episodes", "comper_msgs/msg/EpisodeSummary", [make_qos()])
@@ -138,6 +140,52 @@ def write_run_bag(path, transitions, summaries, evaluations=(), *, agent: str = 
                 w.write(hv, ts, evaluation_cdr(store, ts, returns=rets, lengths=lens, run_id=transitions.run_id,
                                                algorithm=algorithm, env_id=env_id, global_step=int(step)))
     return Path(path)
+
+
+def env_run(env_id: str, n_episodes: int, *, seed: int = 0, max_episode_steps: int | None = None,
+            run_id: str = "env-run") -> tuple[Transitions, list[dict]]:
+    """Real episodes: a gymnasium environment stepped with uniformly random actions (seeded), recorded as an
+    agent records them (float32 observations and rewards, terminated and truncated apart, episode ids and
+    global steps). Returns (transitions, episode summaries as dicts) like synthetic_run."""
+    import gymnasium as gym
+    env = gym.make(env_id, max_episode_steps=max_episode_steps)
+    env.action_space.seed(seed)
+    cols = {k: [] for k in ("s", "a", "r", "s2", "te", "tr", "eid", "step")}
+    summaries, step = [], 0
+    for eid in range(n_episodes):
+        obs, _ = env.reset(seed=seed + eid)
+        ret, k, done = 0.0, 0, False
+        while not done:
+            a = env.action_space.sample()
+            obs2, r, term, trunc, _ = env.step(a)
+            for key, v in zip(cols, (obs, a, r, obs2, term, trunc, eid, step)):
+                cols[key].append(v)
+            ret += float(r)
+            obs, k, step, done = obs2, k + 1, step + 1, term or trunc
+        summaries.append({"run_id": run_id, "episode_id": eid, "episode_return": ret, "length": k, "frames": k,
+                          "terminated": bool(term), "truncated": bool(trunc) and not term, "global_step": step,
+                          "global_frames": step})
+    env.close()
+    t = Transitions(np.asarray(cols["s"], np.float32), np.asarray(cols["a"], np.float32),
+                    np.asarray(cols["r"], np.float32), np.asarray(cols["s2"], np.float32),
+                    np.asarray(cols["te"], bool), np.asarray(cols["tr"], bool) & ~np.asarray(cols["te"], bool),
+                    value_labels=np.zeros(step, np.float32), episode_ids=np.asarray(cols["eid"], np.uint64),
+                    steps=np.asarray(cols["step"], np.uint64), run_id=run_id)
+    return t, summaries
+
+
+def write_run_dir(root, transitions, summaries, *, env_id: str, algorithm: str = "comcact", seed: int = 0,
+                  env: dict | None = None, learner: dict | None = None) -> Path:
+    """A run directory as a learner leaves it: <root>/<run_id>/config.yaml (algorithm, params with env_id, the
+    env description, the learner config with its seed) and the run's bag in <root>/<run_id>/bag."""
+    import yaml
+    run = Path(root) / transitions.run_id
+    run.mkdir(parents=True)
+    (run / "config.yaml").write_text(yaml.safe_dump({
+        "algorithm": algorithm, "params": {"env_id": env_id, "run_id": transitions.run_id, "eval_seed": -1},
+        "env": {"env_id": env_id, **(env or {})}, "learner": {"seed": seed, **(learner or {})}}))
+    write_run_bag(run / "bag", transitions, summaries, env_id=env_id, algorithm=algorithm)
+    return run
 
 
 class EpisodeTopics:

@@ -89,6 +89,13 @@ def test_records_and_evaluate_reproduces_published_returns(launch, ros_node, tmp
     _wait_count(bag, expected, rec)
     assert rec.stop() == 0
     assert "bag closed" in rec.log_path.read_text()
+    # the default bag: zstd-compressed MCAP chunks, each with its CRC, and metadata naming the distro
+    from comper_agent.recording import bag_info, check_mcap_file
+    info = bag_info(bag)
+    assert info["ros_distro"] == "jazzy" and '"compression": "zstd"' in info["custom_data"]["recorder"]
+    for f in bag.glob("*.mcap"):
+        chk = check_mcap_file(f)
+        assert chk.ok and chk.chunks and chk.unverified == 0 and b"zstd" in f.read_bytes(), chk
 
     out = tmp_path / "report"
     _run("evaluate", str(tmp_path / "runs"), "--out", str(out))
@@ -150,22 +157,24 @@ def test_sqlite3_storage(launch, ros_node, tmp_path):
     assert [e.episode_return for e in run.train_episodes()] == [s["episode_return"] for s in summ]
 
 
-def test_bag_to_memory_and_export(launch, ros_node, tmp_path):
+def test_bag_to_memory_and_export(launch, ros_node, tmp_path, monkeypatch):
     from scaffolding import synthetic_run
     from scaffolding import write_run_bag
     from comper_msgs.srv import GetStats
     t, summ = synthetic_run(2500, seed=10, run_id="m1")
     bag = write_run_bag(tmp_path / "bag", t, summ)
-    # export: one npz per episode, Minari-like, no pickles
-    _run("export_dataset", str(bag), "--out", str(tmp_path / "ds"))
-    manifest = json.loads((tmp_path / "ds" / "manifest.json").read_text())
-    (d,) = manifest["datasets"]
-    assert d["total_episodes"] == len(summ) and d["total_steps"] == len(t)
-    e0 = np.load(tmp_path / "ds" / d["episodes"][0]["file"], allow_pickle=False)
+    # export: a Minari dataset (test_export_minari.py checks it in depth)
+    out = _run("export_dataset", str(bag), "--datasets-path", str(tmp_path / "ds"))
+    assert "comper/Hopper/m1-v0" in out, out
+    minari = pytest.importorskip("minari")
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "ds"))
+    ds = minari.load_dataset("comper/Hopper/m1-v0")
+    assert ds.total_episodes == len(summ) and ds.total_steps == len(t)
+    e0 = next(ds.iterate_episodes())
     k = summ[0]["length"]
-    assert e0["observations"].shape == (k + 1, 11) and e0["actions"].shape == (k, 3)
-    np.testing.assert_array_equal(e0["observations"][1:], t.next_states[:k])
-    assert e0["terminations"][-1] == summ[0]["terminated"] and e0["truncations"][-1] == summ[0]["truncated"]
+    assert e0.observations.shape == (k + 1, 11) and e0.actions.shape == (k, 3)
+    np.testing.assert_array_equal(e0.observations[1:], t.next_states[:k])
+    assert e0.terminations[-1] == summ[0]["terminated"] and e0.truncations[-1] == summ[0]["truncated"]
 
     from comper_agent.recorder_node import _msg_class  # noqa: F401  (package importable)
     try:

@@ -11,8 +11,8 @@ import time
 import numpy as np
 import pytest
 
-from comper_agent.recording import (ChunkedBagWriter, bag_info, bag_typestore, comper_typestore, make_qos,
-                                    parse_topic_spec, repair_bag)
+from comper_agent.recording import (ChunkedBagWriter, bag_info, bag_typestore, check_mcap_file, comper_typestore,
+                                    make_qos, parse_topic_spec, repair_bag)
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Reader
 
@@ -46,11 +46,13 @@ def _batch(ts, n, seed=0):
                  episode_ids=np.zeros(n, np.uint64), steps=np.arange(n, dtype=np.uint64))
 
 
-@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
-def test_round_trip_types_from_bag_only(tmp_path, storage):
+@pytest.mark.parametrize("storage,compression", [("mcap", "zstd"), ("sqlite3", "zstd"), ("mcap", "none"),
+                                                 ("sqlite3", "none")])
+def test_round_trip_types_from_bag_only(tmp_path, storage, compression):
     ts = comper_typestore()
     bag = tmp_path / "bag"
-    with ChunkedBagWriter(bag, storage=storage, max_file_duration_s=0, custom_data={"run_id": "r0"}) as w:
+    with ChunkedBagWriter(bag, storage=storage, compression=compression, max_file_duration_s=0,
+                          custom_data={"run_id": "r0"}) as w:
         he = w.add_topic("/agent/episodes", ES, [make_qos()])
         ht = w.add_topic("/agent/transitions", TB, [make_qos()])
         for i in range(6):
@@ -75,6 +77,41 @@ def test_round_trip_types_from_bag_only(tmp_path, storage):
     with AnyReader([bag]) as ar:
         n = sum(1 for c, t, d in ar.messages() if ar.deserialize(d, c.msgtype) is not None)
     assert n == 12
+    # metadata as rosbag2 writes it: the distro, and rosbag2-level compression only where the storage has
+    # none of its own (MCAP compresses its chunks, which metadata.yaml does not list)
+    info = bag_info(bag)
+    assert info["ros_distro"] == "jazzy"
+    per_message = storage == "sqlite3" and compression == "zstd"
+    assert (info["compression_format"], info["compression_mode"]) == (("zstd", "message") if per_message else ("", ""))
+    if storage == "mcap":
+        for f in sorted(bag.glob("*.mcap")):
+            raw = f.read_bytes()
+            chk = check_mcap_file(f)
+            assert chk.ok and chk.chunks >= 1 and chk.unverified == 0, chk   # every chunk has a CRC
+            assert (b"zstd" in raw) == (compression == "zstd")                # the chunk records' compression
+            assert b"ros_distro: jazzy" in raw and b"ros_distro: rosbags" not in raw   # embedded metadata
+
+
+def test_zstd_makes_transition_batches_smaller(tmp_path):
+    """Atari-like frames (runs of equal bytes) shrink under zstd; the decoded data is the same."""
+    ts = comper_typestore()
+    rng = np.random.default_rng(0)
+    frames = np.repeat(rng.integers(0, 8, (20, 4, 21, 84), dtype=np.uint8), 4, axis=2)   # [n, 4, 84, 84]
+    from scaffolding import transitions_cdr
+    from comper_msgs_py.arrays import Transitions
+    n = len(frames)
+    t = Transitions(frames, np.zeros(n, np.float32), np.ones(n, np.float32), frames, np.zeros(n, bool),
+                    np.zeros(n, bool), run_id="a")
+    data = transitions_cdr(ts, t)
+    sizes = {}
+    for comp in ("none", "zstd"):
+        with ChunkedBagWriter(tmp_path / comp, compression=comp) as w:
+            w.write(w.add_topic("/a/transitions", TB), 1, data)
+        sizes[comp] = (tmp_path / comp / "bag_0.mcap").stat().st_size
+        with Reader(tmp_path / comp) as r:
+            ((_, _, got),) = list(r.messages())
+        assert bytes(got) == data
+    assert sizes["zstd"] * 4 < sizes["none"], sizes
 
 
 def test_embedded_definition_is_complete(tmp_path):
@@ -202,8 +239,27 @@ def test_repair_rebuilds_metadata(tmp_path):
     (bag / "bag_4.mcap").write_bytes(b"\x89MCAP0\r\n truncated")   # a half-written file
     res = repair_bag(bag)
     assert res["files"] == [f"bag_{i}.mcap" for i in range(4)] and res["skipped"] == ["bag_4.mcap"]
+    assert "truncated" in res["reasons"]["bag_4.mcap"]
     with Reader(bag) as r:
         assert r.message_count == 4
+    assert bag_info(bag)["ros_distro"] == "jazzy"
+
+
+def test_repair_keeps_per_message_compression(tmp_path):
+    """A sqlite3 bag with per-message zstd is still read as compressed after its metadata is rebuilt."""
+    ts = comper_typestore()
+    bag = tmp_path / "bag"
+    with ChunkedBagWriter(bag, storage="sqlite3", max_file_duration_s=0) as w:
+        h = w.add_topic("/a/episodes", ES)
+        for i in range(3):
+            w.write(h, 10 + i, ts.serialize_cdr(_episode(ts, i, 0.5 + i), ES))
+            w.split()
+    (bag / "metadata.yaml").unlink()
+    repair_bag(bag)
+    assert (bag_info(bag)["compression_format"], bag_info(bag)["compression_mode"]) == ("zstd", "message")
+    with Reader(bag) as r:
+        st = bag_typestore(r.connections)
+        assert [st.deserialize_cdr(d, c.msgtype).episode_return for c, _, d in r.messages()] == [0.5, 1.5, 2.5]
 
 
 def test_parse_topic_spec():

@@ -1,7 +1,7 @@
-"""Bag tools: replay a bag's transitions into a memory node; export an offline-RL dataset; repair.
+"""Bag tools: replay a bag's transitions into a memory node; export a Minari dataset; repair.
 
     ros2 run comper_agent bag_to_memory runs/hopper-s0 [--memory-node memory_node] [--batch 1024]
-    ros2 run comper_agent export_dataset runs/hopper-s0 --out datasets/hopper-s0
+    ros2 run comper_agent export_dataset runs/hopper-s0 [--dataset-id comper/Hopper/hopper-s0-v0]
     ros2 run comper_agent evaluate --repair runs/hopper-s0 --out -      # bag_repair_main, below
 
 A bag that cannot be read ends in one line naming it and the repair to run.
@@ -9,7 +9,6 @@ A bag that cannot be read ends in one line naming it and the repair to run.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -20,8 +19,8 @@ from comper_msgs_py.arrays import Transitions
 
 from . import offline
 
-__all__ = ["bag_to_memory_main", "export_dataset_main", "export_dataset", "iter_batches", "load_transitions",
-           "bag_repair_main"]
+__all__ = ["bag_to_memory_main", "export_dataset_main", "export_minari", "default_dataset_id", "iter_batches",
+           "load_transitions", "bag_repair_main"]
 
 
 def _read_runs(paths):
@@ -116,69 +115,195 @@ def bag_to_memory_main(argv=None) -> int:
 
 
 # --------------------------------------------------------------------------------------------
-def export_dataset(paths, out, *, run_id: str | None = None, include_incomplete: bool = False) -> dict:
-    """Minari-like layout: <out>/<run_id>/episode_<id>.npz with observations [T+1, ...],
-    actions [T, ...], rewards [T], terminations [T], truncations [T] (+ value_labels, steps),
-    and <out>/manifest.json. npz without pickles (np.load(allow_pickle=False) reads them)."""
-    runs = _read_runs(paths)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    manifest = {"format": "comper-offline-dataset", "format_version": 1,
-                "layout": "per episode npz: observations [T+1], actions [T], rewards [T], terminations [T], "
-                          "truncations [T], value_labels [T] (may be empty), steps [T]",
-                "sources": [str(p) for p in paths], "datasets": []}
-    for rid, run in sorted(runs.items()):
-        if run_id is not None and rid != run_id:
-            continue
+# Minari export
+_REWARD_NOTE = ("raw environment rewards as the environment returned them (game score changes for Atari), "
+                "stored float32; not clipped: COMPER's reward_clip applies inside its learner only")
+
+
+def _run_config(run) -> dict:
+    """config.yaml of the run directory holding one of the run's bags (runs/<id>/bag), else {}."""
+    import yaml
+    for bag in run.bags:
+        f = Path(bag).parent / "config.yaml"
+        if f.is_file():
+            try:
+                return yaml.safe_load(f.read_text()) or {}
+            except yaml.YAMLError:
+                return {}
+    return {}
+
+
+def _suite_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("comper_agent")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _env_spec(env_id: str):
+    """The gymnasium EnvSpec of env_id (ALE ids once ale_py registered them), or None."""
+    import gymnasium as gym
+    if not env_id:
+        return None
+    if env_id.startswith("ALE/"):
+        try:
+            import ale_py
+            gym.register_envs(ale_py)
+        except ImportError:
+            return None
+    try:
+        return gym.spec(env_id)
+    except gym.error.Error:
+        return None
+
+
+def _spaces(t: Transitions, env_cfg: dict):
+    """Observation and action spaces of the data as stored: the bag's dtypes and shapes; action bounds
+    (continuous) or count (discrete) from the run's config.yaml env description when present."""
+    from gymnasium import spaces
+    s = t.states
+    obs = (spaces.Box(0, 255, s.shape[1:], np.uint8) if s.dtype == np.uint8
+           else spaces.Box(-np.inf, np.inf, s.shape[1:], np.float32))
+    a = np.asarray(t.actions)
+    if a.ndim == 1:   # discrete: action indices
+        n = int(env_cfg.get("num_actions") or int(a.max()) + 1)
+        return obs, spaces.Discrete(n)
+    lo, hi = env_cfg.get("action_low"), env_cfg.get("action_high")
+    if lo is not None and hi is not None and np.shape(lo) == a.shape[1:]:
+        return obs, spaces.Box(np.asarray(lo, np.float32), np.asarray(hi, np.float32), a.shape[1:], np.float32)
+    return obs, spaces.Box(-np.inf, np.inf, a.shape[1:], np.float32)
+
+
+def default_dataset_id(run) -> str:
+    """comper/<task>/<run id>-v0 (Minari ids: (namespace/)name-v<version>; other characters become _)."""
+    import re
+    task = re.sub(r"-v\d+$", "", (run.env_id or "unknown").split("/")[-1])
+    task, name = (re.sub(r"[^-\w]+", "_", x).strip("_") or "x" for x in (task, run.run_id))
+    return f"comper/{task}/{name}-v0"
+
+
+def export_minari(paths, *, dataset_id: str | None = None, run_id: str | None = None,
+                  include_incomplete: bool = False, description: str | None = None) -> list[dict]:
+    """Write each run's recorded episodes as a Minari dataset (hdf5) under MINARI_DATASETS_PATH.
+
+    Episodes come from the transitions (``offline.reconstruct_episodes``): observations [T+1] (the last
+    is the final next_state), actions [T], rewards [T], terminations [T] and truncations [T] kept apart.
+    Paths are bags or run directories; a run directory's config.yaml supplies the seed, the env
+    description (action bounds, number of actions) and the learner's reward clipping. Incomplete trailing
+    episodes (cut by the end of the recording) are left out unless include_incomplete, and so are episodes
+    with steps missing from the recording (not contiguous: no observation sequence). A dataset id that
+    exists is refused before anything is written; a failed export removes what it created. Returns one
+    summary dict per dataset."""
+    import warnings
+
+    import minari
+    from minari.data_collector import EpisodeBuffer
+    from minari.storage import get_dataset_path
+
+    runs = {rid: r for rid, r in sorted(_read_runs(paths).items())
+            if (run_id is None or rid == run_id) and r.transitions is not None and len(r.transitions)}
+    if not runs:
+        raise ValueError(f"no transitions{' for run ' + run_id if run_id else ''} in {', '.join(map(str, paths))}")
+    if dataset_id and len(runs) > 1:
+        raise ValueError(f"--dataset-id names one dataset but the bags hold {len(runs)} runs "
+                         f"({', '.join(runs)}); pick one with --run-id")
+    ids = {rid: dataset_id or default_dataset_id(run) for rid, run in runs.items()}
+    for did in ids.values():    # every id checked before anything is written
+        minari.dataset.minari_dataset.parse_dataset_id(did)   # ValueError: malformed id
+        if Path(get_dataset_path(did)).exists():
+            raise ValueError(f"Minari dataset {did} exists already ({get_dataset_path(did)}); choose another "
+                             "--dataset-id or version")
+    out = []
+    for rid, run in runs.items():
+        did = ids[rid]
+        target = Path(get_dataset_path(did))
         t = run.transitions
-        if t is None or len(t) == 0:
-            continue
-        d = out / rid
-        d.mkdir(parents=True, exist_ok=True)
-        episodes = []
+        cfg = _run_config(run)
+        params, env_cfg = cfg.get("params") or {}, cfg.get("env") or {}
+        obs_space, act_space = _spaces(t, env_cfg)
+        discrete = act_space.shape == ()     # Discrete
+        buffers, episodes, gaps = [], [], 0
         for e in offline.reconstruct_episodes(t):
             if not e.complete and not include_incomplete:
                 continue
+            if not e.contiguous:   # steps missing from the recording: no observation sequence to give
+                gaps += 1
+                continue
             i = e.index
-            obs = np.concatenate([t.states[i], t.next_states[i[-1:]]])
-            name = f"episode_{e.episode_id:06d}.npz"
-            np.savez(d / name, observations=obs, actions=np.asarray(t.actions[i]), rewards=t.rewards[i],
-                     terminations=t.terminated[i], truncations=t.truncated[i],
-                     value_labels=t.value_labels[i] if t.value_labels.size else np.zeros(0, np.float32),
-                     steps=t.steps[i] if t.steps.size else np.zeros(0, np.uint64))
-            episodes.append({"episode_id": e.episode_id, "file": f"{rid}/{name}", "length": e.length,
-                             "return": e.episode_return, "terminated": e.terminated, "truncated": e.truncated,
-                             "complete": e.complete, "contiguous": e.contiguous})
-        manifest["datasets"].append({
-            "run_id": rid, "env_id": run.env_id, "algorithm": run.algorithm,
-            "total_episodes": len(episodes), "total_steps": int(sum(e["length"] for e in episodes)),
-            "observation_shape": list(t.states.shape[1:]), "observation_dtype": str(t.states.dtype),
-            "action_shape": list(t.actions.shape[1:]), "action_dtype": str(np.asarray(t.actions).dtype),
-            "discrete_actions": bool(t.actions.ndim == 1), "episodes": episodes})
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
-    return manifest
+            a = np.asarray(t.actions[i])
+            buffers.append(EpisodeBuffer(
+                id=len(buffers), observations=np.concatenate([t.states[i], t.next_states[i[-1:]]]),
+                actions=a.astype(np.int64) if discrete else a.astype(np.float32),
+                rewards=np.asarray(t.rewards[i], np.float32), terminations=np.asarray(t.terminated[i], bool),
+                truncations=np.asarray(t.truncated[i], bool)))
+            episodes.append({"run_id": rid, "episode_id": e.episode_id, "length": e.length,
+                             "return": e.episode_return, "complete": e.complete,
+                             "first_step": int(t.steps[i[0]]) if t.steps.size else -1})
+        if not buffers:
+            raise ValueError(f"run {rid}: no complete episode to export (--include-incomplete exports cut ones)")
+        spec = _env_spec(run.env_id)
+        learner = cfg.get("learner") or {}
+        seed = learner.get("seed", params.get("seed"))   # the learners keep it in their learner config
+        comper = {"run_id": rid, "env_id": run.env_id, "algorithm": run.algorithm, "seed": seed,
+                  "suite_version": _suite_version(), "source_bags": [str(b) for b in run.bags],
+                  "rewards": _REWARD_NOTE, "reward_clip_in_learner": learner.get("reward_clip"),
+                  "observations": f"{t.states.dtype} {list(t.states.shape[1:])} as recorded (the agent's "
+                                  "observation after its preprocessing)",
+                  "episode_metadata": "each episode's metadata: run_id, episode_id (the agent's), length, "
+                                      "return (float64 sum), complete, first_step",
+                  "episodes_left_out_with_gaps": gaps}
+        try:
+            with warnings.catch_warnings():
+                # minari's notes on optional fields (author, code_permalink, eval_env) are not errors here
+                warnings.filterwarnings("ignore", category=UserWarning, module=r"minari\.")
+                ds = minari.create_dataset_from_buffers(
+                    did, buffers, env=spec, algorithm_name=run.algorithm or None,
+                    observation_space=obs_space, action_space=act_space, data_format="hdf5",
+                    description=description or (f"{run.algorithm or 'agent'} training run {rid} on {run.env_id}, "
+                                                "exported from its rosbag2 recording by comper_agent "
+                                                "export_dataset"),
+                    jpeg_encoding=False)
+                ds.storage.update_metadata({"comper": comper})
+                ds.storage.update_episode_metadata(episodes, range(len(episodes)))
+        except BaseException:
+            import shutil
+            shutil.rmtree(target, ignore_errors=True)
+            raise
+        out.append({"dataset_id": did, "path": str(target), "run_id": rid, "env_id": run.env_id,
+                    "env_spec": spec is not None, "total_episodes": ds.total_episodes,
+                    "total_steps": ds.total_steps, "seed": seed, "left_out_with_gaps": gaps})
+    return out
 
 
 def export_dataset_main(argv=None) -> int:
     p = argparse.ArgumentParser(
         prog="ros2 run comper_agent export_dataset",
-        description="Export recorded transitions as a plain offline-RL dataset (Minari-like): one npz per "
-                    "episode (observations [T+1], actions, rewards, terminations, truncations) and a JSON "
-                    "manifest. No pickles.")
+        description="Export recorded runs (bags or run directories) as Minari datasets (hdf5), one per run, "
+                    "into MINARI_DATASETS_PATH (default ~/.minari/datasets); load them with "
+                    "minari.load_dataset(ID).")
     p.add_argument("paths", nargs="+", help="bag or run directories")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--dataset-id", help="Minari dataset id (namespace/name-v<version>; default "
+                                        "comper/<task>/<run id>-v0); only with a single run")
+    p.add_argument("--datasets-path", help="Minari's datasets root (sets MINARI_DATASETS_PATH for this export)")
     p.add_argument("--run-id", help="only this run")
     p.add_argument("--include-incomplete", action="store_true",
                    help="also export episodes cut by the end of the recording")
+    p.add_argument("--description", help="dataset description (default: algorithm, run, task)")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    if args.datasets_path:
+        import os
+        os.environ["MINARI_DATASETS_PATH"] = str(Path(args.datasets_path).resolve())
     try:
-        m = export_dataset(args.paths, args.out, run_id=args.run_id, include_incomplete=args.include_incomplete)
+        made = export_minari(args.paths, dataset_id=args.dataset_id, run_id=args.run_id,
+                             include_incomplete=args.include_incomplete, description=args.description)
     except (FileNotFoundError, ValueError) as exc:
         print(f"export_dataset: {exc}", file=sys.stderr)
         return 1
-    for d in m["datasets"]:
-        print(f"{d['run_id']}: {d['total_episodes']} episodes, {d['total_steps']} steps -> {args.out}/{d['run_id']}")
-    print(f"manifest: {Path(args.out) / 'manifest.json'}")
+    for d in made:
+        gaps = f" ({d['left_out_with_gaps']} episodes with missing steps left out)" if d["left_out_with_gaps"] else ""
+        print(f"{d['run_id']}: {d['total_episodes']} episodes, {d['total_steps']} steps{gaps} -> Minari dataset "
+              f"{d['dataset_id']} ({d['path']}); minari.load_dataset({d['dataset_id']!r})")
     return 0
 
 

@@ -243,8 +243,21 @@ def repair(paths) -> list[dict]:
     return [{"bag": str(d), **repair_bag(d)} for d in dirs]
 
 
+def _corrupt_file(bag: Path):
+    """The first MCAP file of `bag` whose chunk CRC check fails (bytes changed inside it), else None."""
+    from .recording import check_mcap_file
+    for f in sorted(bag.glob("*.mcap")):
+        chk = check_mcap_file(f)
+        if chk.damage == "crc":
+            return chk
+    return None
+
+
 def _check_readable(paths) -> None:
-    """Name the first bag that does not open or read to the end, or a bag without metadata."""
+    """Name the first bag that does not open or read to the end, or a bag without metadata.
+
+    A bag with a chunk whose CRC no longer matches gets its own line (file, byte offset, bag_repair);
+    a truncated one the repair hint."""
     from rosbags.rosbag2 import Reader
     try:
         bags = offline.find_bags(paths)
@@ -255,6 +268,12 @@ def _check_readable(paths) -> None:
                            f"the bag); {_repair_hint(loose[0])}") from None
         raise BagError(str(exc)) from None
     for bag in bags:
+        bad = _corrupt_file(bag)
+        if bad is not None:
+            raise BagError(f"bag {bag} is corrupt: {bad.path.name} at byte {bad.offset}: a chunk fails its CRC32 "
+                           f"check ({bad.detail}), so bytes changed after it was written; run `ros2 run "
+                           f"comper_agent bag_repair {bag}` (sets {bad.path.name} aside in {Path(bag) / '.open'}/, "
+                           "the bag's other files stay readable), then evaluate again")
         try:
             with Reader(bag) as r:
                 for _ in r.messages():
@@ -326,8 +345,9 @@ def repair_command(paths, prog: str) -> int:
         print(f"{prog}: {exc}", file=sys.stderr)
         return 1
     for r in results:
+        aside = ", ".join(f"{n} ({r['reasons'].get(n, 'unreadable')})" for n in r["skipped"])
         print(f"repaired {r['bag']}: {len(r['files'])} files, {r['messages']} messages"
-              + (f"; set aside in .open/: {', '.join(r['skipped'])}" if r["skipped"] else ""))
+              + (f"; set aside in .open/: {aside}" if aside else ""))
     return 0
 
 

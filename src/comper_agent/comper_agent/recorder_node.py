@@ -5,8 +5,8 @@
 
 Subscriptions use rclpy's serialized path (``raw=True``): the CDR bytes go straight into the bag,
 nothing is deserialised. The bag is written by :class:`comper_agent.recording.ChunkedBagWriter`
-(MCAP by default, sqlite3 as an option, split files closed every ``max_file_duration_s``), so a
-SIGKILL loses at most the last few seconds. See docs/recording.md.
+(MCAP by default, sqlite3 as an option, zstd-compressed by default, split files closed every
+``max_file_duration_s``), so a SIGKILL loses at most the last few seconds. See docs/recording.md.
 
 In-process use (an agent node with a ``record`` parameter)::
 
@@ -79,11 +79,12 @@ class RecorderNode(Node):
             self.run_id = c.run_id or time.strftime("%Y%m%d-%H%M%S")
             self.bag_path = run_directory(c.output_dir, self.run_id, c.bag_name)
             custom = {"run_id": self.run_id, "algorithm": c.algorithm,
-                      "recorder": json.dumps({"storage": c.storage, "max_file_size_mb": c.max_file_size_mb,
+                      "recorder": json.dumps({"storage": c.storage, "compression": c.compression,
+                                              "max_file_size_mb": c.max_file_size_mb,
                                               "max_file_duration_s": c.max_file_duration_s}),
                       "started_unix_s": f"{time.time():.3f}"}
             self.writer = ChunkedBagWriter(
-                self.bag_path, storage=c.storage, typestore=comper_typestore(),
+                self.bag_path, storage=c.storage, compression=c.compression, typestore=comper_typestore(),
                 max_file_size_bytes=int(c.max_file_size_mb * 2**20),
                 max_file_duration_s=c.max_file_duration_s, fsync=c.fsync, custom_data=custom)
         except Exception:
@@ -110,7 +111,8 @@ class RecorderNode(Node):
         self._discovery_timer = (self.create_timer(c.discovery_period_s, self._discover, callback_group=self._group)
                                  if self._pending else None)
         self.get_logger().info(
-            f"recording {len(self._subs)} topic(s) into {self.bag_path} ({c.storage}, split every "
+            f"recording {len(self._subs)} topic(s) into {self.bag_path} ({c.storage}, compression "
+            f"{c.compression}, split every "
             f"{c.max_file_duration_s:g} s or {c.max_file_size_mb:g} MB); waiting for "
             f"{sorted(self._pending) or 'none'}")
 

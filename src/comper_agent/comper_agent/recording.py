@@ -19,6 +19,11 @@ therefore leaves a bag that opens with any rosbag2 reader and holds every messag
 the last split (at most ``max_file_duration_s`` old). ``repair_bag`` rebuilds ``metadata.yaml``
 from the complete files present (e.g. after a kill between the rename and the metadata update).
 
+Files are zstd-compressed by default (MCAP chunk compression, as ``ros2 bag record`` writes it;
+sqlite3: rosbag2 per-message compression) and every MCAP chunk carries the CRC32 of its records
+(``_CrcMcapWriter``: rosbags writes 0, "no CRC"), which readers verify; ``check_mcap_file`` finds a
+damaged chunk and its byte offset.
+
 Types: ``comper_typestore()`` is the ROS 2 Jazzy typestore of rosbags plus the comper_msgs
 types parsed from the installed ``.msg`` files. ``Writer.add_connection`` embeds the full
 definition (nested ``comper_msgs/Array``, ``std_msgs/Header``, ``builtin_interfaces/Time``) in
@@ -27,26 +32,34 @@ the ones rosidl generates, so a reader needs nothing but the bag (``bag_typestor
 """
 from __future__ import annotations
 
+import mmap
 import os
 import shutil
+import struct
 import time
+from binascii import crc32
 from dataclasses import dataclass, field
 from io import StringIO
 from pathlib import Path
 
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
                                 QosTime)
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.rosbag2.metadata import dump_qos_v9
+from rosbags.rosbag2.storage_mcap import McapWriter
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 from ruamel.yaml import YAML
 
 __all__ = ["comper_typestore", "find_msg_dir", "bag_typestore", "ChunkedBagWriter", "repair_bag",
-           "RecorderConfig", "parse_topic_spec", "bag_info", 
-           "TYPE_BY_SUFFIX", "DEFAULT_TOPICS", "write_metadata",
-           "make_qos", "STORAGE_SUFFIX", "BAG_VERSION"]
+           "RecorderConfig", "parse_topic_spec", "bag_info",
+           "TYPE_BY_SUFFIX", "DEFAULT_TOPICS", "write_metadata", "check_mcap_file", "FileCheck",
+           "make_qos", "STORAGE_SUFFIX", "BAG_VERSION", "ROS_DISTRO", "COMPRESSIONS"]
 
 BAG_VERSION = 9
+#: written into metadata.yaml (and each MCAP file's embedded rosbag2 metadata) as ros_distro
+ROS_DISTRO = "jazzy"
+#: the recorder's `compression` choices (zstd: MCAP chunk compression, sqlite3 per-message compression)
+COMPRESSIONS = ("zstd", "none")
 STORAGE_SUFFIX = {"mcap": ".mcap", "sqlite3": ".db3"}
 _PLUGIN = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
 _OPEN_DIR = ".open"
@@ -124,6 +137,128 @@ def make_qos(reliable: bool = True, depth: int = 100, transient_local: bool = Fa
 
 
 # --------------------------------------------------------------------------------------------
+# storage files with chunk CRCs
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+_OP_FOOTER, _OP_CHUNK = 0x02, 0x06
+_ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+# a chunk record: opcode (1), record length (8), then message_start_time, message_end_time,
+# uncompressed_size (3 x uint64) and uncompressed_crc (uint32)
+_CHUNK_CRC_OFFSET = 1 + 8 + 24
+
+
+class _CrcMcapWriter(McapWriter):
+    """rosbags' MCAP storage writer, with each chunk's ``uncompressed_crc`` filled in.
+
+    rosbags writes 0 there, which MCAP defines as "no CRC", so a flipped byte inside a chunk went
+    unnoticed by every reader. Here the CRC32 of the chunk's uncompressed records is patched into the
+    chunk record once rosbags has written it; MCAP readers (rosbags' Reader, the MCAP library behind
+    ``ros2 bag``) verify a non-zero CRC when they read the chunk. The rosbag2 metadata record embedded
+    in the file names the distro (``ROS_DISTRO``) instead of ``rosbags``."""
+
+    def close_chunk(self) -> None:
+        with self.chunk.bio.getbuffer() as records:
+            crc = crc32(records)
+        start = self.bio.tell()
+        super().close_chunk()
+        end = self.bio.tell()
+        self.bio.seek(start + _CHUNK_CRC_OFFSET)
+        self.bio.write(struct.pack("<I", crc))
+        self.bio.seek(end)
+
+    def close(self, version: int, metadata: str) -> None:
+        super().close(version, metadata.replace("ros_distro: rosbags", f"ros_distro: {ROS_DISTRO}"))
+
+
+class _FileWriter(Writer):
+    """rosbags' rosbag2 Writer with the CRC-writing MCAP storage (sqlite3 unchanged: it has no CRCs)."""
+    STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _CrcMcapWriter}
+
+
+def _compression_mode(storage: str, compression: str) -> CompressionMode:
+    """zstd in MCAP = chunk compression (what ``ros2 bag record -s mcap`` writes; metadata.yaml says no
+    rosbag2-level compression); sqlite3 has no storage compression, so each message is compressed
+    (rosbag2 ``compression_mode: message``, which ``ros2 bag`` reads too)."""
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"compression {compression!r} is not one of {list(COMPRESSIONS)}")
+    if compression == "none":
+        return CompressionMode.NONE
+    return CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE
+
+
+def _metadata_compression(mode: CompressionMode) -> tuple[str, str]:
+    """(compression_format, compression_mode) of metadata.yaml: only rosbag2-level compression counts."""
+    if mode in (CompressionMode.NONE, CompressionMode.STORAGE):
+        return "", ""
+    return "zstd", mode.name.lower()
+
+
+@dataclass
+class FileCheck:
+    """What :func:`check_mcap_file` found in one MCAP file."""
+    path: Path
+    chunks: int = 0            # chunk records read
+    unverified: int = 0        # chunks written without a CRC (crc field 0: older recorders)
+    damage: str = ""           # "" (intact), "crc" (a chunk's content changed), "truncated", "format"
+    offset: int = -1           # byte offset of the damaged record
+    detail: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return not self.damage
+
+
+def check_mcap_file(path: str | os.PathLike) -> FileCheck:
+    """Walk every record of an MCAP file and verify each chunk's CRC32 (after decompression).
+
+    Returns the first damage with its byte offset: ``crc`` (a chunk does not decompress or its CRC does
+    not match: bytes changed inside the messages), ``truncated`` (a record runs past the end, no footer:
+    a file cut by a crash) or ``format`` (not an MCAP file). Chunks with CRC 0 count as ``unverified``."""
+    from rosbags.rosbag2.storage_mcap import decompress
+    path = Path(path)
+    res = FileCheck(path)
+    size = path.stat().st_size
+    if size < 2 * len(_MCAP_MAGIC):
+        res.damage, res.offset, res.detail = "truncated", 0, f"{size} bytes"
+        return res
+    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+        if m[:len(_MCAP_MAGIC)] != _MCAP_MAGIC:
+            res.damage, res.offset, res.detail = "format", 0, "no MCAP magic"
+            return res
+        pos = len(_MCAP_MAGIC)
+        while True:
+            if pos + 9 > size:
+                res.damage, res.offset, res.detail = "truncated", pos, "file ends inside a record header"
+                return res
+            op, length = m[pos], struct.unpack_from("<Q", m, pos + 1)[0]
+            body = pos + 9
+            if body + length > size:
+                res.damage, res.offset, res.detail = "truncated", pos, f"record of {length} bytes runs past the end"
+                return res
+            if op == _OP_FOOTER:
+                if m[size - len(_MCAP_MAGIC):] != _MCAP_MAGIC:
+                    res.damage, res.offset, res.detail = "truncated", size, "no closing MCAP magic"
+                return res
+            if op == _OP_CHUNK:
+                res.chunks += 1
+                try:
+                    usize, crc = struct.unpack_from("<QI", m, body + 16)
+                    (nlen,) = struct.unpack_from("<I", m, body + 28)
+                    compression = bytes(m[body + 32:body + 32 + nlen]).decode()
+                    (clen,) = struct.unpack_from("<Q", m, body + 32 + nlen)
+                    data_at = body + 40 + nlen
+                    if data_at + clen > body + length:
+                        raise ValueError(f"compressed size {clen} exceeds the chunk record")
+                    if crc == 0:
+                        res.unverified += 1
+                    decompress(bytes(m[data_at:data_at + clen]), compression, usize, crc)
+                except Exception as exc:  # noqa: BLE001 - ReaderError, ZstdError, a garbled header
+                    res.damage, res.offset = "crc", pos
+                    res.detail = f"{type(exc).__name__}: {str(exc).rstrip('.')}"
+                    return res
+            pos = body + length
+
+
+# --------------------------------------------------------------------------------------------
 # writer
 @dataclass
 class _Topic:
@@ -155,12 +290,13 @@ class ChunkedBagWriter:
     """A rosbag2 bag written as split files closed regularly (see module doc).
 
     storage: "mcap" (default, rosbag2's default since Iron) or "sqlite3".
+    compression: "zstd" (default; MCAP: zstd chunks, sqlite3: zstd per message) or "none".
     max_file_size_bytes: split when the open file's payload reaches this (0 = never).
     max_file_duration_s: split when the open file is this old (0 = never); bounds what a crash loses.
     custom_data: strings written into metadata.yaml's custom_data (run id, algorithm, ...).
     """
 
-    def __init__(self, path: str | os.PathLike, *, storage: str = "mcap", typestore=None,
+    def __init__(self, path: str | os.PathLike, *, storage: str = "mcap", compression: str = "zstd", typestore=None,
                  max_file_size_bytes: int = 256 * 2**20, max_file_duration_s: float = 5.0,
                  fsync: bool = True, custom_data: dict | None = None, clock=time.monotonic):
         if storage not in _PLUGIN:
@@ -171,6 +307,8 @@ class ChunkedBagWriter:
         self.path.mkdir(parents=True, exist_ok=True)
         (self.path / _OPEN_DIR).mkdir(exist_ok=True)
         self.storage = storage
+        self.compression = compression
+        self._compression_mode = _compression_mode(storage, compression)
         self.typestore = typestore if typestore is not None else comper_typestore()
         self.max_file_size_bytes = int(max_file_size_bytes)
         self.max_file_duration_s = float(max_file_duration_s)
@@ -215,7 +353,8 @@ class ChunkedBagWriter:
         staging = self.path / _OPEN_DIR / name
         if staging.exists():
             shutil.rmtree(staging)
-        self._writer = Writer(staging, version=BAG_VERSION, storage_plugin=_PLUGIN[self.storage])
+        self._writer = _FileWriter(staging, version=BAG_VERSION, storage_plugin=_PLUGIN[self.storage])
+        self._writer.set_compression(self._compression_mode, CompressionFormat.ZSTD)
         self._writer.open()
         self._conns = {}
         self._file_counts = {}
@@ -304,13 +443,17 @@ class ChunkedBagWriter:
     def _write_metadata(self) -> None:
         write_metadata(self.path, self.storage, [(t.name, t.msgtype, t.qos, t.digest, t.count)
                                                  for t in self._topics],
-                       self._files, self.custom_data, fsync=self.fsync)
+                       self._files, self.custom_data, fsync=self.fsync,
+                       compression=_metadata_compression(self._compression_mode))
 
 
-def write_metadata(path: Path, storage: str, topics, files, custom_data: dict, *, fsync: bool = True) -> None:
+def write_metadata(path: Path, storage: str, topics, files, custom_data: dict, *, fsync: bool = True,
+                   compression: tuple[str, str] = ("", "")) -> None:
     """Write rosbag2 v9 metadata.yaml for `files` (atomic: temp file, fsync, rename).
 
-    topics: (name, msgtype, qos list, rihs01, message count); files: _FileInfo-like records.
+    topics: (name, msgtype, qos list, rihs01, message count); files: _FileInfo-like records;
+    compression: rosbag2-level (compression_format, compression_mode), ("zstd", "message") for a
+    per-message compressed sqlite3 bag; MCAP chunk compression is the storage's own and not listed.
     """
     start = min((f.start for f in files if f.count), default=0)
     end = max((f.end for f in files if f.count), default=0)
@@ -328,13 +471,13 @@ def write_metadata(path: Path, storage: str, topics, files, custom_data: dict, *
                                 "type_description_hash": digest},
              "message_count": n}
             for name, msgtype, qos, digest, n in topics],
-        "compression_format": "",
-        "compression_mode": "",
+        "compression_format": compression[0],
+        "compression_mode": compression[1],
         "files": [{"path": f.name, "starting_time": {"nanoseconds_since_epoch": f.start if f.count else 0},
                    "duration": {"nanoseconds": max(0, f.end - f.start) if f.count else 0},
                    "message_count": f.count} for f in files],
         "custom_data": dict(custom_data) or None,
-        "ros_distro": "rosbags",
+        "ros_distro": ROS_DISTRO,
     }
     yaml = YAML(typ="safe")
     yaml.default_flow_style = False
@@ -361,24 +504,27 @@ def write_metadata(path: Path, storage: str, topics, files, custom_data: dict, *
 def repair_bag(path: str | os.PathLike) -> dict:
     """Rebuild ``metadata.yaml`` of a split bag from the complete storage files present.
 
-    Files that do not open (the one being written when a process died) are moved to
-    ``<bag>/.open/`` untouched. Returns {"files": [...], "skipped": [...], "messages": n}.
+    Files that do not open or read to the end (the one being written when a process died, or one whose
+    chunk CRC no longer matches: bytes changed on disk) are moved to ``<bag>/.open/`` untouched.
+    Returns {"files": [...], "skipped": [...], "reasons": {skipped name: why}, "messages": n}.
     """
     from rosbags.rosbag2 import Reader
     path = Path(path)
     custom = {}
     storage = None
+    compression = ("", "")
     meta = path / "metadata.yaml"
     if meta.exists():
         try:
             old = YAML(typ="safe").load(meta.read_text())["rosbag2_bagfile_information"]
             custom = old.get("custom_data") or {}
             storage = old.get("storage_identifier")
+            compression = (old.get("compression_format") or "", old.get("compression_mode") or "")
         except Exception:
             pass
     cands = sorted((p for p in path.iterdir() if p.suffix in (".mcap", ".db3")),
                    key=lambda p: (int(p.stem.rsplit("_", 1)[-1]) if p.stem.rsplit("_", 1)[-1].isdigit() else 1 << 30, p.name))
-    files, skipped, topics = [], [], {}
+    files, skipped, reasons, topics = [], [], {}, {}
     for p in cands:
         st = "mcap" if p.suffix == ".mcap" else "sqlite3"
         if storage is None:
@@ -391,19 +537,35 @@ def repair_bag(path: str | os.PathLike) -> dict:
                 counts = {}
                 lo, hi, n = 2**63 - 1, 0, 0
                 conns = {c.id: c for c in r.connections}
-                for c, ts, _ in r.messages():
+                for c, ts, data in r.messages():
                     counts[c.topic] = counts.get(c.topic, 0) + 1
                     lo, hi, n = min(lo, ts), max(hi, ts), n + 1
+                    if n == 1 and bytes(data[:4]) == _ZSTD_MAGIC:   # per-message zstd (CDR starts 00 01)
+                        compression = ("zstd", "message")
                 for c in conns.values():
                     t = topics.setdefault(c.topic, [c.topic, c.msgtype, list(c.ext.offered_qos_profiles), c.digest, 0])
                     t[4] += counts.get(c.topic, 0)
             files.append(_FileInfo(p.name, lo, hi, n))
-        except Exception:
+        except Exception as exc:  # noqa: BLE001 - any reader failure: set the file aside, say why
+            reasons[p.name] = _damage_reason(p, exc)
             (path / _OPEN_DIR).mkdir(exist_ok=True)
             os.replace(p, path / _OPEN_DIR / p.name)
             skipped.append(p.name)
-    write_metadata(path, storage or "mcap", [tuple(v) for v in topics.values()], files, custom)
-    return {"files": [f.name for f in files], "skipped": skipped, "messages": sum(f.count for f in files)}
+    write_metadata(path, storage or "mcap", [tuple(v) for v in topics.values()], files, custom,
+                   compression=compression)
+    return {"files": [f.name for f in files], "skipped": skipped, "reasons": reasons,
+            "messages": sum(f.count for f in files)}
+
+
+def _damage_reason(p: Path, exc: Exception) -> str:
+    """Why a storage file did not read: the MCAP check's finding with its offset, else the reader's error."""
+    if p.suffix == ".mcap":
+        chk = check_mcap_file(p)
+        if chk.damage == "crc":
+            return f"corrupt chunk at byte {chk.offset} ({chk.detail})"
+        if chk.damage:
+            return f"{chk.damage} at byte {chk.offset} ({chk.detail})"
+    return f"{type(exc).__name__}: {str(exc).rstrip('.')}"
 
 
 # --------------------------------------------------------------------------------------------
@@ -441,6 +603,10 @@ class RecorderConfig:
     algorithm: str = _param("", "algorithm label written into the bag's custom_data (evaluate groups by "
                                 "it when no EvaluationResult names the algorithm)")
     storage: str = _param("mcap", "rosbag2 storage plugin", choices=("mcap", "sqlite3"))
+    compression: str = _param(
+        "zstd", "zstd: compressed bag as `ros2 bag record` writes it (mcap: zstd chunks, the MCAP storage's "
+                "own compression; sqlite3: rosbag2 per-message zstd); none: uncompressed.",
+        choices=COMPRESSIONS)
     max_file_size_mb: float = _param(256.0, "split the bag when the open file holds this many MB "
                                             "(rosbag2 max_bagfile_size); 0 = never", minimum=0.0)
     max_file_duration_s: float = _param(
