@@ -43,8 +43,8 @@ def learner(**kw):
 
 class Reference:
     """The update written out from its definition on copies of a learner's networks: separate Adam
-    optimisers (same settings), gradients taken with torch.autograd.grad with respect to exactly the
-    parameters each step changes."""
+    optimisers (same settings), each step's gradient accumulated by backward() into exactly the
+    parameters it changes."""
 
     def __init__(self, lrn: ComcactLearner):
         c = self.c = lrn.config
@@ -53,6 +53,10 @@ class Reference:
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=c.actor_lr, fused=True)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=c.critic_lr, fused=True)
 
+    def _clip(self, params):
+        if self.c.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(params, self.c.grad_clip)
+
     def _heads(self, s, a):
         return (self.critic.q1(s, a), self.critic.q2(s, a)) if self.c.critic == "twin" else (self.critic(s, a),)
 
@@ -60,9 +64,10 @@ class Reference:
         self.critic.train()
         loss = sum(((q - y) ** 2).mean() for q in self._heads(s, a)) * weight
         params = list(self.critic.parameters())
-        for p, g in zip(params, torch.autograd.grad(loss, params)):
-            p.grad = g
+        loss.backward(inputs=params)
+        self._clip(params)
         self.critic_opt.step()
+        self.critic_opt.zero_grad()
         self.critic.eval()
 
     def step(self, b: Transitions, qt: np.ndarray) -> None:
@@ -78,9 +83,10 @@ class Reference:
         self.critic.train()
         actor_loss = -self.critic(s, self.actor(s)).mean()
         params = list(self.actor.parameters())
-        for p, g in zip(params, torch.autograd.grad(actor_loss, params)):
-            p.grad = g
+        actor_loss.backward(inputs=params)
+        self._clip(params)
         self.actor_opt.step()
+        self.actor_opt.zero_grad()
         self.actor.eval()
         self.critic.eval()
         if self.c.variant == "comcact":
@@ -107,9 +113,11 @@ def assert_same(lrn, other, atol=1e-6, rtol=1e-5):
 
 @pytest.mark.parametrize("variant", ["ddpg", "comcact"])
 @pytest.mark.parametrize("critic", ["single", "twin"])
-@pytest.mark.parametrize("batch_norm", [False, True])
-def test_eager_step_equals_the_reference_parameter_by_parameter(variant, critic, batch_norm):
-    lrn = learner(variant=variant, critic=critic, batch_norm=batch_norm)
+@pytest.mark.parametrize("batch_norm,grad_clip,action_input", [(False, 0.0, "second_hidden"),
+                                                               (True, 0.0, "second_hidden"), (False, 0.05, "output")])
+def test_eager_step_equals_the_reference_parameter_by_parameter(variant, critic, batch_norm, grad_clip, action_input):
+    lrn = learner(variant=variant, critic=critic, batch_norm=batch_norm, grad_clip=grad_clip,
+                  critic_action_input=action_input)
     ref = Reference(lrn)
     data = batches()
     run(lrn, data)
