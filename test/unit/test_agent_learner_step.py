@@ -53,21 +53,20 @@ class Reference:
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=c.actor_lr, fused=True)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=c.critic_lr, fused=True)
 
-    def _clip(self, params):
+    def _apply(self, loss, net, opt):
+        params = list(net.parameters())
+        loss.backward(inputs=params)
         if self.c.grad_clip > 0:
             torch.nn.utils.clip_grad_norm_(params, self.c.grad_clip)
+        opt.step()
+        opt.zero_grad()
 
     def _heads(self, s, a):
         return (self.critic.q1(s, a), self.critic.q2(s, a)) if self.c.critic == "twin" else (self.critic(s, a),)
 
     def _critic_step(self, s, a, y, weight=1.0):
         self.critic.train()
-        loss = sum(((q - y) ** 2).mean() for q in self._heads(s, a)) * weight
-        params = list(self.critic.parameters())
-        loss.backward(inputs=params)
-        self._clip(params)
-        self.critic_opt.step()
-        self.critic_opt.zero_grad()
+        self._apply(sum(((q - y) ** 2).mean() for q in self._heads(s, a)) * weight, self.critic, self.critic_opt)
         self.critic.eval()
 
     def step(self, b: Transitions, qt: np.ndarray) -> None:
@@ -81,12 +80,7 @@ class Reference:
         self._critic_step(s, a, y)
         self.actor.train()
         self.critic.train()
-        actor_loss = -self.critic(s, self.actor(s)).mean()
-        params = list(self.actor.parameters())
-        actor_loss.backward(inputs=params)
-        self._clip(params)
-        self.actor_opt.step()
-        self.actor_opt.zero_grad()
+        self._apply(-self.critic(s, self.actor(s)).mean(), self.actor, self.actor_opt)
         self.actor.eval()
         self.critic.eval()
         if self.c.variant == "comcact":
