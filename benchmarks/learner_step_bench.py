@@ -59,6 +59,8 @@ def parse_args(argv=None):
     ap.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
     ap.add_argument("--algorithms", nargs="+", default=["ddpg", "comcact"], choices=["ddpg", "comcact"])
     ap.add_argument("--critic", default="single", choices=["single", "twin"])
+    ap.add_argument("--qt-step-gate", action="store_true",
+                    help="COMCACT's qt_step_gate on (its check reuses the update's DDPG targets, except in toggle)")
     ap.add_argument("--variants", nargs="+", default=["toggle", "off", "default"],
                     help="toggle, off, default, max-autotune-no-cudagraphs, off@2 (see above)")
     ap.add_argument("--reference", default="toggle", help="the variant the ratios and the equality check use")
@@ -164,7 +166,7 @@ def max_diff(a: ComcactLearner, b: ComcactLearner, atol: float, rtol: float) -> 
 def run_case(task: str, algorithm: str, args) -> list[dict]:
     obs, act = TASKS[task]
     cfg = config_from_dict(ComcactConfig, {"variant": algorithm, "critic": args.critic, "seed": 0,
-                                           "batch_size": args.batch})
+                                           "batch_size": args.batch, "qt_step_gate": args.qt_step_gate})
     base = ComcactLearner(cfg, obs, -np.ones(act, np.float32), np.ones(act, np.float32))
     data = batches(obs, act, 16, args.batch)
     names = list(dict.fromkeys([args.reference] + args.variants))
@@ -205,6 +207,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     warnings.simplefilter("always", RuntimeWarning)
     print(f"[bench] torch {torch.__version__}, {args.threads} thread(s), batch {args.batch}, critic {args.critic}, "
+          f"qt_step_gate {args.qt_step_gate}, "
           f"{args.updates} timed updates after {args.warmup} warm-up, equality after {args.check_updates} updates "
           f"(torch.allclose atol {args.atol:g} rtol {args.rtol:g}), reference {args.reference}; "
           f"load average at start {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs", flush=True)

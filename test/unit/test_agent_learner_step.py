@@ -124,6 +124,22 @@ def test_eager_step_equals_the_reference_parameter_by_parameter(variant, critic,
     assert lrn.compile_report() == {}
 
 
+def test_qt_diagnostics_after_an_update_reuse_its_ddpg_targets_with_the_same_result():
+    lrn = learner()
+    (b, qt), (other, _) = batches(2)
+    lrn.update(b)
+    fresh = copy.deepcopy(lrn)
+    fresh.soft_update(0.0)                          # forgets the update's targets; a lerp by 0 moves nothing
+    assert_same(lrn, fresh, atol=0.0, rtol=0.0)
+    assert lrn.qt_diagnostics(b, qt) == fresh.qt_diagnostics(b, qt)
+    assert lrn.qt_diagnostics(other, qt) == fresh.qt_diagnostics(other, qt)   # another batch: its own targets
+    with torch.no_grad():
+        lrn.critic_target.out.bias += 1.0            # Q' + 1 everywhere
+    lrn.soft_update(0.0)                            # after a target update the targets are computed again
+    assert lrn.qt_diagnostics(b, qt)["qt_bias"] == pytest.approx(fresh.qt_diagnostics(b, qt)["qt_bias"] - 1.0,
+                                                                 abs=1e-4)
+
+
 def test_bad_compile_mode_is_refused():
     with pytest.raises(ValueError, match="compile mode must be one of"):
         networks.compile_or_eager(lambda x: x, "max-autotune", "f")

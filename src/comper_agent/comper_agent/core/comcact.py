@@ -69,6 +69,9 @@ class ComcactLearner:
         self.updates = 0      # DDPG updates done
         self.qt_steps = 0     # extra critic steps towards QT targets done
         self.qt_gated = 0     # QT steps skipped by qt_step_gate
+        # (batch, DDPG targets) of the last update: the target networks do not move before soft_update, so the QT
+        # step's gate and qt_diagnostics on the same batch reuse them instead of two more forward passes
+        self._last_targets: tuple[Transitions, torch.Tensor] | None = None
 
     # ------------------------------------------------------------------ helpers
     def _t(self, x, dtype=torch.float32) -> torch.Tensor:
@@ -182,6 +185,7 @@ class ComcactLearner:
         s, a, r, s2, not_done = self._tensors(batch)
         with torch.no_grad():
             y = self._targets_fn(r, s2, not_done)
+        self._last_targets = (batch, y)
         self.critic.train()
         critic_loss, q = self._critic_loss_fn(s, a, y)
         self._step(critic_loss, self._critic_params, self.critic_opt)
@@ -230,10 +234,12 @@ class ComcactLearner:
         qt_target_rmse: RMS of (r + gamma (1 - terminated) QT(tau)) - (r + gamma (1 - terminated)
         Q'(s', mu'(s'))), i.e. gamma (1 - terminated) |QT(tau) - Q'(s', mu'(s'))|;
         critic_td_rmse: RMS of Q(s, a) - the DDPG target (the critic's own TD error, before any
-        update on the batch); qt_bias: mean of QT(tau) - Q'(s', mu'(s')) over non-terminal rows."""
+        update on the batch); qt_bias: mean of QT(tau) - Q'(s', mu'(s')) over non-terminal rows.
+        After update(batch) and before soft_update() the DDPG targets are the update's own (same target networks)."""
         c = self.config
         s, a, r, _, not_done = self._tensors(batch)
-        y = self.td_targets(batch)
+        last = self._last_targets
+        y = last[1] if last is not None and last[0] is batch else self.td_targets(batch)
         qt = self._t(qt_targets).reshape(-1)
         y_qt = r + c.gamma * not_done * qt
         self.critic.eval()
@@ -247,6 +253,7 @@ class ComcactLearner:
     def soft_update(self, tau: float | None = None) -> None:
         """Polyak update of both target networks (parameters and batch-norm running stats)."""
         tau = self.config.tau if tau is None else tau
+        self._last_targets = None
         soft_update(self.actor_target, self.actor, tau)
         soft_update(self.critic_target, self.critic, tau)
 
@@ -266,6 +273,7 @@ class ComcactLearner:
                 "qt_gated": self.qt_gated}
 
     def load_state_dict(self, d: dict) -> None:
+        self._last_targets = None
         self.actor.load_state_dict(d["actor"])
         self.critic.load_state_dict(d["critic"])
         self.actor_target.load_state_dict(d["actor_target"])
