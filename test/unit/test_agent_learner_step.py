@@ -1,6 +1,7 @@
 """The COMCACT / DDPG learner step against a reference computation of it, eager and compiled
 (comper_agent.core.comcact, learner_compile; docs/agent-core.md "Learner step speed")."""
 import copy
+import dataclasses
 import sys
 import warnings
 from pathlib import Path
@@ -140,9 +141,11 @@ def test_qt_diagnostics_after_an_update_reuse_its_ddpg_targets_with_the_same_res
                                                                  abs=1e-4)
 
 
-def test_bad_compile_mode_is_refused():
+def test_bad_compile_mode_is_refused_and_the_config_offers_exactly_the_modes():
     with pytest.raises(ValueError, match="compile mode must be one of"):
         networks.compile_or_eager(lambda x: x, "max-autotune", "f")
+    field = {f.name: f for f in dataclasses.fields(ComcactConfig)}["learner_compile"]
+    assert tuple(field.metadata["choices"]) == networks.COMPILE_MODES
 
 
 def test_without_a_cpp_compiler_the_step_runs_eagerly_with_one_warning(monkeypatch):
@@ -156,6 +159,7 @@ def test_without_a_cpp_compiler_the_step_runs_eagerly_with_one_warning(monkeypat
         warnings.simplefilter("error")
         run(lrn, data)
     assert_same(lrn, eager, atol=0.0, rtol=0.0)
+    assert lrn.update(data[0][0])["compile_s"] == 0.0 and "compile_s" not in eager.update(data[0][0])
     rep = lrn.compile_report()
     assert set(rep) == {"targets", "critic_loss", "actor_loss"}
     assert all(not r["compiled"] and "no C++ compiler" in r["fallback"] for r in rep.values())
@@ -189,3 +193,4 @@ def test_compiled_step_equals_the_reference():
     rep = lrn.compile_report()
     assert all(r["compiled"] and r["compile_s"] > 0 for r in rep.values()), rep
     assert_same(lrn, ref, atol=1e-5, rtol=1e-4)    # compiled kernels round in another order
+    assert lrn.update(data[0][0])["compile_s"] == pytest.approx(sum(r["compile_s"] for r in rep.values()))

@@ -196,8 +196,11 @@ class ComcactLearner:
         self.actor.eval()
         self.critic.eval()
         self.updates += 1
-        return {"critic_loss": float(critic_loss.detach()) / self._heads, "actor_loss": float(actor_loss.detach()),
-                "q_mean": float(q.detach().mean()), "target_mean": float(y.mean())}
+        out = {"critic_loss": float(critic_loss.detach()) / self._heads, "actor_loss": float(actor_loss.detach()),
+               "q_mean": float(q.detach().mean()), "target_mean": float(y.mean())}
+        if self.config.learner_compile != "off":    # into the run's train/ scalars: what compiling cost
+            out["compile_s"] = sum(r["compile_s"] for r in self.compile_report().values())
+        return out
 
     def qt_critic_step(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
         """COMCACT's extra critic step (Algorithm 8 lines 29-34): minimise
