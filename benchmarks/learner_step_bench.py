@@ -65,7 +65,7 @@ def parse_args(argv=None):
                     help="toggle, off, default, max-autotune-no-cudagraphs, off@2 (see above)")
     ap.add_argument("--reference", default="toggle", help="the variant the ratios and the equality check use")
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads (the nodes' default: 1)")
-    ap.add_argument("--updates", type=int, default=300, help="timed updates per variant")
+    ap.add_argument("--updates", type=int, default=200, help="timed updates per variant")
     ap.add_argument("--warmup", type=int, default=30, help="untimed updates first (after the compiling call)")
     ap.add_argument("--check-updates", type=int, default=20, help="updates of the equality check")
     ap.add_argument("--atol", type=float, default=1e-5, help="equality tolerance (absolute) ...")
