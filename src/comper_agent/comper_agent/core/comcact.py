@@ -22,11 +22,12 @@ import copy
 import numpy as np
 import torch
 from torch import nn
+from torch.func import functional_call
 
 from comper_msgs_py.arrays import Transitions
 
 from .config import ComcactConfig
-from .networks import Actor, Critic, TwinCritic, soft_update
+from .networks import Actor, Critic, TwinCritic, compile_or_eager, soft_update
 from .noise import OUNoise
 
 __all__ = ["ComcactLearner"]
@@ -45,6 +46,7 @@ class ComcactLearner:
             self.actor = Actor(obs_dim, self.action_low, self.action_high, c.actor_hidden,
                                c.actor_final_init, c.batch_norm).to(self.device)
             critic_cls = TwinCritic if c.critic == "twin" else Critic
+            self._heads = 2 if c.critic == "twin" else 1
             self.critic = critic_cls(obs_dim, self.action_dim, c.critic_hidden, c.critic_final_init,
                                      c.critic_action_input, c.batch_norm).to(self.device)
         self.actor_target = copy.deepcopy(self.actor)
@@ -55,12 +57,21 @@ class ComcactLearner:
             p.requires_grad_(False)
         # fused: one kernel per step instead of ~10 per parameter tensor (same arithmetic; measured
         # 12.1 -> 10.0 ms per DDPG update at batch 64 in one micro-benchmark run on the 2-core CPU)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=c.actor_lr, fused=True)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=c.critic_lr, fused=True)
+        self._actor_params = list(self.actor.parameters())
+        self._critic_params = list(self.critic.parameters())
+        self.actor_opt = torch.optim.Adam(self._actor_params, lr=c.actor_lr, fused=True)
+        self.critic_opt = torch.optim.Adam(self._critic_params, lr=c.critic_lr, fused=True)
+        # the update's pure parts, compiled when learner_compile asks for it (eager if compiling fails)
+        self._targets_fn = compile_or_eager(self._targets, c.learner_compile, "targets")
+        self._critic_loss_fn = compile_or_eager(self._critic_loss, c.learner_compile, "critic_loss")
+        self._actor_loss_fn = compile_or_eager(self._actor_loss, c.learner_compile, "actor_loss")
         self.noise = OUNoise(self.action_dim, c.ou_theta, c.ou_sigma, dt=c.ou_dt, seed=c.seed)
         self.updates = 0      # DDPG updates done
         self.qt_steps = 0     # extra critic steps towards QT targets done
         self.qt_gated = 0     # QT steps skipped by qt_step_gate
+        # (batch, DDPG targets) of the last update: the target networks do not move before soft_update, so the QT
+        # step's gate and qt_diagnostics on the same batch reuse them instead of two more forward passes
+        self._last_targets: tuple[Transitions, torch.Tensor] | None = None
 
     # ------------------------------------------------------------------ helpers
     def _t(self, x, dtype=torch.float32) -> torch.Tensor:
@@ -75,9 +86,15 @@ class ComcactLearner:
         not_done = 1.0 - self._t(batch.terminated)
         return s, a, r, s2, not_done
 
-    def _clip(self, params, value):
-        if value > 0:
-            nn.utils.clip_grad_norm_(params, value)
+    def _step(self, loss: torch.Tensor, params: list, opt: torch.optim.Optimizer) -> None:
+        """One optimiser step on `loss`: the gradients of `params` (what zero_grad(set_to_none) +
+        backward() would leave in .grad, without the zeroing and accumulation passes), clipped
+        if grad_clip > 0."""
+        for p, g in zip(params, torch.autograd.grad(loss, params, allow_unused=True)):
+            p.grad = g
+        if self.config.grad_clip > 0:
+            nn.utils.clip_grad_norm_(params, self.config.grad_clip)
+        opt.step()
 
     # ------------------------------------------------------------------ acting
     def reset_noise(self) -> None:
@@ -126,8 +143,7 @@ class ComcactLearner:
         """DDPG target r + gamma (1 - terminated) Q'(s', mu'(s')) (target nets, eval mode; twin: the
         minimum of the two target critics)."""
         _, _, r, s2, not_done = self._tensors(batch)
-        q2 = self.critic_target.pessimistic(s2, self.actor_target(s2))
-        return r + self.config.gamma * not_done * q2
+        return self._targets_fn(r, s2, not_done)
 
     @torch.no_grad()
     def critic_loss(self, batch: Transitions, targets: torch.Tensor | np.ndarray | None = None
@@ -148,41 +164,43 @@ class ComcactLearner:
         return self.critic(s, a).cpu().numpy()
 
     # ------------------------------------------------------------------ updates
+    def _targets(self, r: torch.Tensor, s2: torch.Tensor, not_done: torch.Tensor) -> torch.Tensor:
+        """r + gamma (1 - terminated) Q'(s', mu'(s')) (pure; the caller holds no_grad and eval mode)."""
+        return r + self.config.gamma * not_done * self.critic_target.pessimistic(s2, self.actor_target(s2))
+
+    def _critic_loss(self, s: torch.Tensor, a: torch.Tensor, y: torch.Tensor):
+        """(sum over the critic's heads of mean (Q_i(s, a) - y)^2, Q_1(s, a)) (pure up to batch-norm stats)."""
+        qs = self.critic.all_heads(s, a)
+        return sum(torch.mean((qi - y) ** 2) for qi in qs), qs[0]
+
+    def _actor_loss(self, s: torch.Tensor, critic_params: dict) -> torch.Tensor:
+        """-mean Q(s, mu(s)) with the critic's weights given as detached tensors: the backward pass
+        reaches the actor's weights only (the critic is still differentiated with respect to its
+        input), without toggling requires_grad on the critic, which a compiled graph would guard on."""
+        return -functional_call(self.critic, critic_params, (s, self.actor(s))).mean()
+
     def update(self, batch: Transitions) -> dict:
         """One DDPG update on `batch`: critic step towards r + gamma (1 - terminated)
         Q'(s', mu'(s')), then actor step maximising Q(s, mu(s)). No target update."""
-        c = self.config
-        s, a, _, _, _ = self._tensors(batch)
-        y = self.td_targets(batch)
+        s, a, r, s2, not_done = self._tensors(batch)
+        with torch.no_grad():
+            y = self._targets_fn(r, s2, not_done)
+        self._last_targets = (batch, y)
         self.critic.train()
-        qs = self.critic.all_heads(s, a)
-        q = qs[0]
-        critic_loss = sum(torch.mean((qi - y) ** 2) for qi in qs)
-        self.critic_opt.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        self._clip(self.critic.parameters(), c.grad_clip)
-        self.critic_opt.step()
+        critic_loss, q = self._critic_loss_fn(s, a, y)
+        self._step(critic_loss, self._critic_params, self.critic_opt)
 
         self.actor.train()
-        # the actor step needs dQ/da only: no gradients for the critic's own weights (saves their
-        # backward pass; the critic is still differentiated with respect to its input)
-        critic_params = list(self.critic.parameters())
-        for p in critic_params:
-            p.requires_grad_(False)
-        try:
-            actor_loss = -self.critic(s, self.actor(s)).mean()
-            self.actor_opt.zero_grad(set_to_none=True)
-            actor_loss.backward()
-        finally:
-            for p in critic_params:
-                p.requires_grad_(True)
-        self._clip(self.actor.parameters(), c.grad_clip)
-        self.actor_opt.step()
+        actor_loss = self._actor_loss_fn(s, {k: p.detach() for k, p in self.critic.named_parameters()})
+        self._step(actor_loss, self._actor_params, self.actor_opt)
         self.actor.eval()
         self.critic.eval()
         self.updates += 1
-        return {"critic_loss": float(critic_loss.detach()) / len(qs), "actor_loss": float(actor_loss.detach()),
-                "q_mean": float(q.detach().mean()), "target_mean": float(y.mean())}
+        out = {"critic_loss": float(critic_loss.detach()) / self._heads, "actor_loss": float(actor_loss.detach()),
+               "q_mean": float(q.detach().mean()), "target_mean": float(y.mean())}
+        if self.config.learner_compile != "off":    # into the run's train/ scalars: what compiling cost
+            out["compile_s"] = sum(r["compile_s"] for r in self.compile_report().values())
+        return out
 
     def qt_critic_step(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
         """COMCACT's extra critic step (Algorithm 8 lines 29-34): minimise
@@ -205,15 +223,11 @@ class ComcactLearner:
                 self.qt_gated += 1
                 return {"qt_target_mean": float(y.mean()), "qt_gated": 1.0}
         self.critic.train()
-        qs = self.critic.all_heads(s, a)
-        loss = sum(torch.mean((qi - y) ** 2) for qi in qs)
-        self.critic_opt.zero_grad(set_to_none=True)
-        (loss * c.qt_step_weight).backward()
-        self._clip(self.critic.parameters(), c.grad_clip)
-        self.critic_opt.step()
+        loss, _ = self._critic_loss_fn(s, a, y)
+        self._step(loss * c.qt_step_weight, self._critic_params, self.critic_opt)
         self.critic.eval()
         self.qt_steps += 1
-        return {"qt_critic_loss": float(loss.detach()) / len(qs), "qt_target_mean": float(y.mean()),
+        return {"qt_critic_loss": float(loss.detach()) / self._heads, "qt_target_mean": float(y.mean()),
                 **({"qt_gated": 0.0} if c.qt_step_gate else {})}
 
     @torch.no_grad()
@@ -223,10 +237,12 @@ class ComcactLearner:
         qt_target_rmse: RMS of (r + gamma (1 - terminated) QT(tau)) - (r + gamma (1 - terminated)
         Q'(s', mu'(s'))), i.e. gamma (1 - terminated) |QT(tau) - Q'(s', mu'(s'))|;
         critic_td_rmse: RMS of Q(s, a) - the DDPG target (the critic's own TD error, before any
-        update on the batch); qt_bias: mean of QT(tau) - Q'(s', mu'(s')) over non-terminal rows."""
+        update on the batch); qt_bias: mean of QT(tau) - Q'(s', mu'(s')) over non-terminal rows.
+        After update(batch) and before soft_update() the DDPG targets are the update's own (same target networks)."""
         c = self.config
         s, a, r, _, not_done = self._tensors(batch)
-        y = self.td_targets(batch)
+        last = self._last_targets
+        y = last[1] if last is not None and last[0] is batch else self.td_targets(batch)
         qt = self._t(qt_targets).reshape(-1)
         y_qt = r + c.gamma * not_done * qt
         self.critic.eval()
@@ -240,8 +256,15 @@ class ComcactLearner:
     def soft_update(self, tau: float | None = None) -> None:
         """Polyak update of both target networks (parameters and batch-norm running stats)."""
         tau = self.config.tau if tau is None else tau
+        self._last_targets = None
         soft_update(self.actor_target, self.actor, tau)
         soft_update(self.critic_target, self.critic, tau)
+
+    def compile_report(self) -> dict:
+        """Per compiled function: whether it runs compiled, its first-call (compile) seconds, and why
+        it fell back to eager, if it did. Empty with learner_compile off."""
+        return {f.name: f.report() for f in (self._targets_fn, self._critic_loss_fn, self._actor_loss_fn)
+                if hasattr(f, "report")}
 
     # ------------------------------------------------------------------ checkpointing
     def state_dict(self) -> dict:
@@ -253,6 +276,7 @@ class ComcactLearner:
                 "qt_gated": self.qt_gated}
 
     def load_state_dict(self, d: dict) -> None:
+        self._last_targets = None
         self.actor.load_state_dict(d["actor"])
         self.critic.load_state_dict(d["critic"])
         self.actor_target.load_state_dict(d["actor_target"])

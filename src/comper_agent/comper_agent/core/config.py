@@ -192,6 +192,12 @@ class ComcactConfig:
     grad_clip: float = param(0.0, "if > 0, clip actor and critic gradient norms to this value",
                              minimum=0.0)
     device: str = param("cpu", "torch device of the learner (cpu, cuda, ...)")
+    learner_compile: str = param(
+        "off", "torch.compile of the update's loss and target functions (same arithmetic up to float rounding): "
+        "off = eager; default / max-autotune-no-cudagraphs = that torch.compile mode, compiled on the first "
+        "update (seconds to minutes, reported as the train/compile_s scalar), eager with a warning if no C++ compiler "
+        "is found or compiling fails; measured slower than off on the 2-core CPU (docs/agent-core.md)",
+        choices=("off", "default", "max-autotune-no-cudagraphs"))
     num_threads: int = param(2, "torch intra-op threads, set by the entry point", minimum=1)
     seed: int = param(0, "seed of network initialisation, noise and replay sampling", minimum=0)
 

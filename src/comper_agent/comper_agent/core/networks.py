@@ -11,10 +11,14 @@ transition's action / value does not depend on the rest of its batch.
 """
 from __future__ import annotations
 
+import shutil
+import time
+import warnings
+
 import torch
 from torch import nn
 
-__all__ = ["Actor", "Critic", "TwinCritic", "NatureCNN", "QMLP", "configure_torch", "soft_update", "hard_update",
+__all__ = ["Actor", "Critic", "TwinCritic", "NatureCNN", "QMLP", "configure_torch", "compile_or_eager", "soft_update", "hard_update",
            "frames_to_nchw"]
 
 
@@ -23,6 +27,71 @@ def configure_torch(num_threads: int = 2, seed: int | None = None) -> None:
     torch.set_num_threads(max(1, int(num_threads)))
     if seed is not None:
         torch.manual_seed(int(seed))
+
+
+COMPILE_MODES = ("off", "default", "max-autotune-no-cudagraphs")
+
+
+def cpp_compiler() -> str | None:
+    """The C++ compiler torch.compile's CPU backend (inductor) would call, or None if there is none."""
+    import os
+    for name in (os.environ.get("CXX"), "g++", "c++", "clang++"):
+        if name and shutil.which(name):
+            return name
+    return None
+
+
+class CompiledOrEager:
+    """`fn` run through torch.compile(mode), or `fn` itself when compiling is unavailable or fails.
+
+    Compilation happens on the first call (its time is ``compile_s``, one call's run time included);
+    if that call raises (no C++ compiler, an unsupported construct), the reason is kept in
+    ``fallback``, one warning is issued and this and every later call run `fn` eagerly. `fn` must not
+    have side effects before it fails: the learner's loss functions only read tensors (batch-norm
+    running statistics are updated when the compiled graph runs, not while it is traced)."""
+
+    def __init__(self, fn, mode: str, name: str):
+        self.fn, self.mode, self.name = fn, mode, name
+        self.compile_s = 0.0
+        self.fallback: str | None = None
+        self.calls = 0
+        self.compiled = None
+        if cpp_compiler() is None:
+            self._fall_back("no C++ compiler found (CXX, g++, c++, clang++)")
+        else:
+            self.compiled = torch.compile(fn, mode=None if mode == "default" else mode)
+
+    def _fall_back(self, why: str) -> None:
+        self.fallback, self.compiled = why, None
+        warnings.warn(f"torch.compile of {self.name} unavailable, running it eagerly: {why}", RuntimeWarning,
+                      stacklevel=3)
+
+    def __call__(self, *args):
+        if self.compiled is None:
+            return self.fn(*args)
+        self.calls += 1
+        if self.calls > 1:
+            return self.compiled(*args)
+        t0 = time.perf_counter()
+        try:
+            out = self.compiled(*args)
+        except Exception as e:   # noqa: BLE001 - any compiler failure means: run eagerly
+            self._fall_back(f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+            return self.fn(*args)
+        self.compile_s = time.perf_counter() - t0
+        return out
+
+    def report(self) -> dict:
+        return {"mode": self.mode, "compiled": self.compiled is not None, "compile_s": round(self.compile_s, 3),
+                "fallback": self.fallback}
+
+
+def compile_or_eager(fn, mode: str, name: str):
+    """`fn` unchanged for mode "off"; otherwise a :class:`CompiledOrEager` (torch.compile with that
+    mode, falling back to `fn`). Modes: :data:`COMPILE_MODES`."""
+    if mode not in COMPILE_MODES:
+        raise ValueError(f"compile mode must be one of {', '.join(COMPILE_MODES)}, got {mode!r}")
+    return fn if mode == "off" else CompiledOrEager(fn, mode, name)
 
 
 class Actor(nn.Module):
