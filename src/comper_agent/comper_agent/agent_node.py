@@ -229,7 +229,7 @@ class AgentNode(Node):
         return st
 
     def _run_config(self) -> dict:
-        """config.yaml: every parameter of the run (the node adds its env description)."""
+        """config.yaml: every parameter of the run, and the task (env_description, set in _check_env)."""
         e = self.embedded
         return {"algorithm": self.p.algorithm, "params": config_to_dict(self.p),
                 "learner": config_to_dict(self.cfg), "reducer": self.reducer,
