@@ -1,5 +1,6 @@
-"""comper_node pieces that need no running ROS graph: the protocol summary (last-10 / terciles) and
-the DQN baseline's frame-deduplicating replay (exact reconstruction across episodes, ring overwrite)."""
+"""comper_node pieces that need no running ROS graph: the protocol summary (last-10 / terciles),
+the DQN baseline's frame-deduplicating replay (exact reconstruction across episodes, ring overwrite) and
+the rows waiting for their value label (PendingRows)."""
 import numpy as np
 import pytest
 
@@ -69,3 +70,23 @@ def test_frame_replay_reconstructs_transitions_exactly(stack):
     assert b.states.dtype == np.uint8 and b.states.shape == ((32, 84, 84) if stack == 1 else (32, stack, 84, 84))
     # each frame stored once: far less than two observations per transition
     assert rb.frames.shape[0] == 66
+
+
+def test_pending_rows_store_only_the_labelled_prefix():
+    """COMPER labels a step with max_a Q(s', a) computed to act at the next step: the newest row waits
+    for its label, the rows before it can be stored, oldest first."""
+    from comper_agent.core.memory_schedule import PendingRows, Row
+    obs = np.zeros(4, np.float32)
+    rows = PendingRows()
+    assert rows.newest_unlabelled() is None and rows.labelled() == 0 and rows.take_labelled() == []
+    for step in range(3):
+        waiting = rows.newest_unlabelled()
+        if waiting is not None:
+            waiting.label = float(step)          # the next step's Q-values label the previous row
+        rows.append(Row(obs, 0, 1.0, obs, False, False, step))
+    assert len(rows) == 3 and rows.labelled() == 2
+    taken = rows.take_labelled()
+    assert [r.step for r in taken] == [0, 1] and [r.label for r in taken] == [1.0, 2.0]
+    assert len(rows) == 1 and rows.newest_unlabelled().step == 2
+    rows.newest_unlabelled().label = 0.0         # a terminal step is labelled 0 at once
+    assert [r.step for r in rows.take_labelled()] == [2] and len(rows) == 0

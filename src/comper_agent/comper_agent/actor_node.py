@@ -37,7 +37,7 @@ from .core.memory_schedule import Row, rows_to_transitions
 from .node_config import ActorNodeConfig
 from .policy_weights import POLICY_QOS, config_of_policy, load_policy_msg
 
-__all__ = ["ActorNode", "ActorNodeConfig", "main"]
+__all__ = ["ActorNode", "ActorNodeConfig", "ActorFleet", "rate_limit_params", "main"]
 
 EPISODE_ID_STRIDE = 1_000_000_000   # episode ids of actor k: k x stride + its own episode count
 
@@ -322,3 +322,14 @@ class ActorFleet:
         for log, _ in self.logs:
             log.close()
         return codes
+
+
+def rate_limit_params(p, c) -> dict:
+    """The memory node's rate limiter for an async learner (comcact_node parameters `p`, learner
+    hyper-parameters `c`): replay_ratio updates of batch_size per environment step, with an error
+    band of rate_buffer_steps steps (docs/comcact.md, Async mode)."""
+    spi = float(p.replay_ratio * c.batch_size)
+    # the band must hold the largest single call: an actor's store and a learner's prefetched sample
+    widest = max(spi * 10, c.batch_size * max(1, min(p.prefetch_batches, p.reduce_every)))
+    return {"samples_per_insert": spi, "rate_error_buffer": max(spi * p.rate_buffer_steps, widest, 1.0),
+            "min_size_to_sample": int(max(c.learning_starts, c.batch_size))}

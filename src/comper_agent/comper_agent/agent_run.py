@@ -93,6 +93,21 @@ class AgentRun:
         return True
 
     # --- time split -------------------------------------------------------------------------
+    def report_time_split(self, timers: run_io.PhaseTimers, elapsed: float, steps: int, calls: int,
+                          probe: Callable[[], object] | None, probe_calls: int,
+                          notes: Callable[[dict, float, int], tuple[str, str]], log) -> dict:
+        """The time split at the end of a session: :meth:`time_split`, completed by the node's
+        `notes(rec, elapsed, steps)` (fields added to rec, texts appended to the two log lines), on
+        the console (`log`) and in metrics.jsonl ('timers'). Returns the record."""
+        rec = self.time_split(timers, elapsed, steps, calls, probe, probe_calls)
+        split_note, estimate_note = notes(rec, elapsed, steps)
+        log.info(f"time split over {elapsed:.1f} s, {steps} steps ({rec['steps_per_s']:.1f} steps/s): "
+                 + timers.summary(elapsed) + split_note)
+        log.info(f"estimates: ROS round trip {rec['ros_round_trip_ms']:.2f} ms/call x {calls} calls = "
+                 f"{rec['transport_estimate_s']:.1f} s transport" + estimate_note)
+        self.metrics.write("timers", **rec)
+        return rec
+
     def time_split(self, timers: run_io.PhaseTimers, elapsed: float, steps: int, calls: int,
                    probe: Callable[[], object] | None, probe_calls: int) -> dict:
         """The time split record: phases, rate, and the ROS transport share estimated from

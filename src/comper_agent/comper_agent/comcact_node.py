@@ -11,7 +11,7 @@
     ros2 run comper_agent comcact_node --help                # every parameter
 
 Bring-up. ``embedded`` (default) builds the simulation, memory and QT trainer nodes in this
-process (separate node objects, one MultiThreadedExecutor in a background thread); the learner
+process (separate node objects, each spun by its own executor in its own thread); the learner
 loop runs in the main thread and talks to them only through ROS services and topics.
 ``external`` uses nodes started separately (``ros2 run comper_sim sim_node`` ...), by name.
 Command-line parameters reach every embedded node that declares them (``-p delta:=1e-3`` sets the
@@ -36,6 +36,10 @@ by its transitions on ``~/transitions``).
 Outputs in ``<runs_root>/<run_id>/``: config.yaml, metrics.jsonl, progress.csv, tb/ (TensorBoard),
 checkpoints/ (see :mod:`comper_agent.run_io`). Ctrl-C stops after the current step, saves a final
 checkpoint and flushes the logs (a second Ctrl-C aborts).
+
+Size: one node runs COMCACT and the DDPG baseline, each in lock step and in async mode; they share
+the Algorithm 8 update (``_train_step``) and its memory side (``_store``, ``_sample``, ``_reduce``),
+which read top to bottom here; splitting the modes or algorithms apart would repeat them.
 """
 from __future__ import annotations
 
@@ -47,13 +51,14 @@ import numpy as np
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.convert import seq_to_numpy
 
-from .actor_node import ActorFleet
+from .actor_node import ActorFleet, rate_limit_params
 from .agent_run import next_due, resume_text
 from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
+from .evaluation import Evaluation
 from .node_config import ComcactNodeConfig
 from .core.config import ComcactConfig, DDPGConfig
 from .core.memory_schedule import Row, reduce_due, rows_to_transitions, updates_before_reduce
-from .policy_weights import PolicyPublisher, policy_to_msg
+from .policy_weights import PolicyPublisher
 
 __all__ = ["ComcactNode", "ComcactNodeConfig", "main", "SUMMARY_QOS"]
 
@@ -61,6 +66,7 @@ __all__ = ["ComcactNode", "ComcactNodeConfig", "main", "SUMMARY_QOS"]
 class ComcactNode(AgentNode):
     """The COMCACT / DDPG learner node (see the module text); the shared machinery is AgentNode."""
 
+    NODE_NAME = "comcact_node"
     CONFIG = ComcactNodeConfig
     LEARNER_CONFIGS = {"comcact": ComcactConfig, "ddpg": DDPGConfig}
     # LEARNER_OVERRIDES num_threads 1 (AgentNode): the 400/300 nets at batch 64 gain nothing from a second
@@ -68,9 +74,6 @@ class ComcactNode(AgentNode):
     OBS_DTYPE = np.float32
     CSV_COLUMNS = ["step", "wall_time_s", "eval_mean_return", "eval_std_return", "episodes",
                    "last_train_return", "steps_per_s", "rtm_size", "critic_loss"]
-
-    def __init__(self, node_name: str = "comcact_node", **node_kwargs):
-        super().__init__(node_name, **node_kwargs)
 
     def _configure(self) -> None:
         p = self.p
@@ -85,20 +88,9 @@ class ComcactNode(AgentNode):
         self.policy_pub = (PolicyPublisher(f"{self.get_fully_qualified_name()}/policy", f"{self.get_name()}_policy")
                            if self.async_mode else None)
         self.fleet = None
-
-    def _embedded_params(self) -> tuple[dict, dict, dict]:
-        if not self.async_mode:
-            return {}, {}, {}
-        return {}, self._rate_limit(), {}
-
-    def _rate_limit(self) -> dict:
-        """async: the embedded memory node's rate limiter for replay_ratio (docs/comcact.md, Async mode)."""
-        p, c = self.p, self.cfg
-        spi = float(p.replay_ratio * c.batch_size)
-        # the band must hold the largest single call: an actor's store and a learner's prefetched sample
-        widest = max(spi * 10, c.batch_size * max(1, min(p.prefetch_batches, p.reduce_every)))
-        return {"samples_per_insert": spi, "rate_error_buffer": max(spi * p.rate_buffer_steps, widest, 1.0),
-                "min_size_to_sample": int(max(c.learning_starts, c.batch_size))}
+        if self.async_mode:     # the embedded memory node's rate limiter holds replay_ratio
+            self.embedded_params = ({}, rate_limit_params(p, self.cfg), {})
+        self.progress_total = int(p.total_steps)
 
     def _check_env(self, info) -> None:
         if info.discrete:
@@ -107,6 +99,9 @@ class ComcactNode(AgentNode):
         self.low = seq_to_numpy(info.action_low, np.float32).copy()
         self.high = seq_to_numpy(info.action_high, np.float32).copy()
         self.action_dim = int(self.low.size)
+        self.env_description = {"env_id": info.env_id, "observation_shape": list(self.obs_shape),
+                                "action_low": self.low.tolist(), "action_high": self.high.tolist(),
+                                "episode_end": self.episode_rule, "max_episode_steps": int(info.max_episode_steps)}
 
     # ------------------------------------------------------------------------------ setup / state
     def _setup_learner(self) -> None:
@@ -120,28 +115,20 @@ class ComcactNode(AgentNode):
         if not self.uses_memory:
             self.replay = ReplayBuffer(self.cfg.replay_size, self.obs_shape, (self.action_dim,),
                                        seed=self.cfg.seed)
-        self._open_eval_env(action_out_of_range="clip")
+        self.evaluation = Evaluation(self, self._eval_action, self._eval_recorded, action_out_of_range="clip")
         self.rng = np.random.default_rng(self.cfg.seed + 7)   # warm-up actions
         self.since_reduce = 0
         self.update_count = 0
-        self.restore: list[Transitions] = []   # restore_batch: updated batches with fresh labels, for the next store
-        self.restored = 0
+        self.pending: list[Row] = []           # agent steps not yet stored (labelled when stored)
 
     def _restore(self, state: dict) -> None:
         super()._restore(state)
-        self.evals = list(state.get("evals", []))
         self.rng.bit_generator.state = state["warmup_rng"]
 
     def _state(self) -> dict:
         st = super()._state()
-        st.update(evals=self.evals, warmup_rng=self.rng.bit_generator.state)
+        st.update(warmup_rng=self.rng.bit_generator.state)
         return st
-
-    def _run_config(self) -> dict:
-        return {**super()._run_config(),
-                "env": {"env_id": self.info.env_id, "observation_shape": list(self.obs_shape),
-                        "action_low": self.low.tolist(), "action_high": self.high.tolist(),
-                        "episode_end": self.episode_rule, "max_episode_steps": int(self.info.max_episode_steps)}}
 
     # ------------------------------------------------------------------------------ main loop
     def _start_line(self) -> str:
@@ -158,7 +145,7 @@ class ComcactNode(AgentNode):
         self.next_eval = next_due(self.step, p.eval_every)
         self.outputs.schedule_checkpoints(p.checkpoint_every or p.eval_every, self.step)
         if p.eval_every > 0 and self.step == 0:
-            self.evaluate()       # the untrained policy: the curve's first point
+            self.evaluation.run(self.step)       # the untrained policy: the curve's first point
 
     def _loop(self) -> None:
         if self.async_mode:
@@ -173,31 +160,28 @@ class ComcactNode(AgentNode):
                 obs = self._agent_step(obs)
             if self.next_eval is not None and self.step >= self.next_eval:
                 self._flush()
-                self.evaluate()
+                self.evaluation.run(self.step)
                 self.next_eval += p.eval_every
             self._after_step()
         self._flush()
 
     # ------------------------------------------------------------------------------ async mode
-    def _publish_policy(self, final: bool = False) -> None:
-        with self.ptimers("publish"):
-            msg = policy_to_msg(self.learner, version=self.learner.updates, env_steps=self.step, final=final)
-            msg.header.stamp = self.policy_pub.stamp()
-            self.policy_pub.publish(msg)
-        self.policies_published += 1
-
-    def _env_steps(self) -> int:
-        """Environment steps so far: transitions the actors stored since this run started."""
-        with self.ptimers("memory"):
-            return int(self.mem.stats()["transitions_stored"]) - self.steps_base
-
     def _loop_async(self) -> None:
         """mode:=async: publish the policy, start the actors (embedded), then update continuously; the
         memory's rate limiter holds the update-to-data ratio, this loop only counts steps and evaluates."""
         p = self.p
-        self.policies_published = 0
-        self.steps_base = int(self.mem.stats()["transitions_stored"]) - self.step
-        self._publish_policy()
+        steps_base = int(self.mem.stats()["transitions_stored"]) - self.step
+
+        def env_steps() -> int:
+            """Environment steps so far: transitions the actors stored since this run started."""
+            with self.ptimers("memory"):
+                return int(self.mem.stats()["transitions_stored"]) - steps_base
+
+        def publish_policy(final: bool = False) -> None:
+            with self.ptimers("publish"):
+                self.policy_pub.send(self.learner, env_steps=self.step, final=final)
+
+        publish_policy()
         if p.bringup == "embedded" and p.num_actors > 0:
             left = p.total_steps - self.step
             self.fleet = ActorFleet(
@@ -205,7 +189,7 @@ class ComcactNode(AgentNode):
                 policy_topic=self.policy_pub.topic_name, steps_each=-(-left // p.num_actors),
                 episode_end=self.episode_rule, log_dir=self.run_dir.path, startup_timeout_s=p.startup_timeout_s)
             self.log.info(f"async: {p.num_actors} actor processes started (logs {self.run_dir.path}/actor_*.log), "
-                          f"rate limiter {self._rate_limit()}")
+                          f"rate limiter {self.embedded_params[1]}")
         last_policy = time.monotonic()
         since_count = 0
         while self.step < p.total_steps and not self.stop_event.is_set():
@@ -218,13 +202,13 @@ class ComcactNode(AgentNode):
             if self.update_count == before:       # nothing to sample yet: the actors are filling the memory
                 time.sleep(0.01)
             if since_count >= 20 or self.update_count == before:
-                self.step = max(self.step, self._env_steps())
+                self.step = max(self.step, env_steps())
                 since_count = 0
             if time.monotonic() - last_policy >= p.policy_period_s:
-                self._publish_policy()
+                publish_policy()
                 last_policy = time.monotonic()
             if self.next_eval is not None and self.step >= self.next_eval:
-                self.evaluate()
+                self.evaluation.run(self.step)
                 self.next_eval = next_due(self.step, p.eval_every)
             self._after_step()
         # the updates still owed for the last steps (the rate limiter lets learning trail acting by up to
@@ -232,7 +216,7 @@ class ComcactNode(AgentNode):
         owed = int(p.replay_ratio * max(0, self.step - self.cfg.learning_starts))
         while self.update_count < owed and not self.stop_event.is_set():
             self._train_step()
-        self._publish_policy(final=True)
+        publish_policy(final=True)
 
     def shutdown(self) -> None:
         super().shutdown()
@@ -244,14 +228,14 @@ class ComcactNode(AgentNode):
         if self.fleet is not None:
             codes = self.fleet.stop()
             self.log.info(f"async: actors exited with {codes}")
-            self.metrics.write("actors", exit_codes=codes, policies_published=self.policies_published,
+            self.metrics.write("actors", exit_codes=codes, policies_published=self.policy_pub.published,
                                updates=self.update_count, env_steps=self.step,
                                update_to_data=self.update_count / max(1, self.step))
 
     def _finish(self, elapsed: float, steps: int, timers: dict) -> None:
-        if self.evals:
-            e = self.evals[-1]
-            self.log.info(f"done: {self.step} steps, {self.episodes} episodes, last evaluation "
+        if self.evaluation.records:
+            e = self.evaluation.records[-1]
+            self.log.info(f"done: {self.step} steps, {self.env.count} episodes, last evaluation "
                           f"{e['mean_return']:.1f} +- {e['std_return']:.1f} at step {e['step']}; "
                           f"outputs in {self.run_dir.path}")
 
@@ -260,25 +244,21 @@ class ComcactNode(AgentNode):
         if self.comcact:
             extra = f" | RTM {self.rtm_size} | QT v{self.mem.qt_version}"
         self.log.info(line + extra)
-        self.metrics.write("progress", step=self.step, steps_per_s=self.progress.rate, episodes=self.episodes,
+        self.metrics.write("progress", step=self.step, steps_per_s=self.progress.rate, episodes=self.env.count,
                            wall_time_s=self.wall_time(), rtm_size=self.rtm_size, **{
                                k: v for k, v in self.last_update.items() if isinstance(v, float)})
         self.scalars.scalar("perf/steps_per_s", self.progress.rate, self.step)
 
     # ------------------------------------------------------------------------------ stepping
     def _reset_env(self) -> np.ndarray:
-        obs = super()._reset_env()
+        obs = self.env.reset()
         self.learner.reset_noise()
         return obs
-
-    def _end_episode(self, terminated: bool, truncated: bool) -> None:
-        self._publish_episode(terminated, truncated, ep_frames=self.ep_len, global_frames=self.step, x=self.step)
-        self.ep_return, self.ep_len = 0.0, 0
 
     def _agent_step(self, obs: np.ndarray) -> np.ndarray:
         with self.ptimers("learner"):
             a = self.learner.act(obs, explore=True)
-        r, nxt = self._sim_step(a)
+        r, nxt = self.env.step(a)
         self.pending.append(Row(obs, a, r.reward, nxt, r.terminated, r.truncated, self.step))
         self.step += 1
         over = episode_over(self.episode_rule, r.terminated, r.truncated)
@@ -287,7 +267,7 @@ class ComcactNode(AgentNode):
         if self.stored >= max(self.cfg.learning_starts, 2):
             self._train_step()
         if over:
-            self._end_episode(r.terminated, r.truncated)
+            self.env.end(r.terminated, r.truncated, step=self.step)
             return self._reset_env()
         return nxt
 
@@ -302,17 +282,17 @@ class ComcactNode(AgentNode):
         t = Transitions(states=np.array(t.states, np.float32), actions=np.array(t.actions, np.float32),
                         rewards=np.array(t.rewards, np.float32), next_states=np.array(t.next_states, np.float32),
                         terminated=np.array(t.terminated), truncated=np.array(t.truncated),
-                        episode_ids=self.episodes + ends_before,
+                        episode_ids=self.env.count + ends_before,
                         steps=np.arange(self.step, self.step + len(t), dtype=np.uint64), run_id=self.run_id)
         seg = 0
         for i in range(len(t)):
-            self.ep_return += float(t.rewards[i])
-            self.ep_len += 1
+            self.env.add(float(t.rewards[i]))
             self.step += 1
             if over[i]:
                 self._store(t.take(slice(seg, i + 1)))   # the episode's transitions go out with its summary
                 seg = i + 1
-                self._end_episode(bool(t.terminated[i]), bool(t.truncated[i]))
+                self.env.end(bool(t.terminated[i]), bool(t.truncated[i]), step=self.step)
+                self.env.begin()                         # step_many reset the environment itself
                 self.learner.reset_noise()
         if seg < len(t):
             self._store(t.take(slice(seg, len(t))))
@@ -328,26 +308,16 @@ class ComcactNode(AgentNode):
         else:
             with self.ptimers("learner"):
                 t.value_labels = self.learner.value_labels(t)
-            self._mem_store(t)
+            self.mem.store(t)           # with the re-stored batches waiting (restore_batch)
         self.stored += len(t)
-        self.ep_parts.append(t)
-
-    def _mem_store(self, t: Transitions | None) -> None:
-        """One store call: `t` (new transitions, labelled) and the re-stored batches waiting (restore_batch)."""
-        parts = ([t] if t is not None else []) + self.restore
-        if not parts:
-            return
-        self.restored += sum(len(x) for x in self.restore)
-        self.restore = []
-        with self.ptimers("memory"):
-            self.mem.store(parts[0] if len(parts) == 1 else Transitions.concatenate(parts))
+        self.env.parts.append(t)
 
     def _flush(self) -> None:
         if self.pending:
             rows, self.pending = self.pending, []
-            self._store(rows_to_transitions(rows, self.episodes, self.run_id))
-        elif self.comcact and self.restore:
-            self._mem_store(None)
+            self._store(rows_to_transitions(rows, self.env.count, self.run_id))
+        elif self.comcact:
+            self.mem.store(None)        # only re-stored batches waiting, if any
 
     def _sample(self):
         """(batch, set sizes) for the next update: from RTM (prefetched up to the next reduction,
@@ -416,7 +386,7 @@ class ComcactNode(AgentNode):
                 self.learner.soft_update()
                 if p.restore_batch:       # fresh labels after this update's steps (and target update)
                     batch.value_labels = self.learner.value_labels(batch)
-                    self.restore.append(batch)
+                    self.mem.queue_restore(batch)
         else:
             with self.ptimers("learner"):
                 batch = self.replay.sample(self.cfg.batch_size)
@@ -440,7 +410,7 @@ class ComcactNode(AgentNode):
                    label_age_max=float(age.max()) if age.size else float("nan"),
                    set_size_mean=float(cnt.mean()) if cnt.size else float("nan"),
                    multi_member_fraction=float((cnt > 1).mean()) if cnt.size else float("nan"),
-                   qt_version=int(self.mem.qt_version), rtm_size=int(self.rtm_size), restored=int(self.restored))
+                   qt_version=int(self.mem.qt_version), rtm_size=int(self.rtm_size), restored=int(self.mem.restored))
         self.metrics.write("qt_diagnostics", step=self.step, update=self.update_count, **rec)
         self.scalars.scalars({k: v for k, v in rec.items() if isinstance(v, float)}, self.step, prefix="qt/")
 
@@ -450,7 +420,7 @@ class ComcactNode(AgentNode):
 
     def _eval_recorded(self, rec: dict) -> None:
         self.csv.write(step=self.step, wall_time_s=round(self.wall_time(), 2), eval_mean_return=rec["mean_return"],
-                       eval_std_return=rec["std_return"], episodes=self.episodes,
+                       eval_std_return=rec["std_return"], episodes=self.env.count,
                        last_train_return=self.progress.last_episode_return,
                        steps_per_s=round(self.progress.overall_rate(self.step), 1),
                        rtm_size=self.rtm_size if self.comcact else self.stored,
@@ -458,20 +428,9 @@ class ComcactNode(AgentNode):
 
     # ------------------------------------------------------------------------------ time split
     def _timer_notes(self, rec: dict, elapsed: float, steps: int) -> tuple[str, str]:
-        sim_compute = float("nan")
-        try:   # simulation compute per step, measured on the learner's own (eval) env
-            b = self.eval_bridge
-            b.reset(0)
-            t0 = time.perf_counter()
-            n = 0
-            for _ in range(500):
-                res = b.step(self.rng.uniform(self.low, self.high).astype(np.float32))
-                n += 1
-                if res.episode_over:
-                    b.reset(None)
-            sim_compute = (time.perf_counter() - t0) / n
-        except Exception:
-            pass
+        # simulation compute per step, measured on the learner's own (eval) env
+        sim_compute = self.evaluation.sim_seconds_per_step(
+            lambda: self.rng.uniform(self.low, self.high).astype(np.float32))
         rec["sim_compute_us_per_step"] = 1e6 * sim_compute
         return "", (f"; simulation compute {1e6 * sim_compute:.0f} us/step "
                     f"(x {steps} = {sim_compute * steps:.1f} s of the 'sim' phase)")

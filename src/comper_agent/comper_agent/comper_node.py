@@ -64,8 +64,9 @@ from comper_msgs_py.arrays import Transitions
 from . import run_io
 from .agent_run import next_due, resume_text
 from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
+from .evaluation import Evaluation
 from .node_config import COMPER_ALGORITHMS, ComperNodeConfig
-from .core.memory_schedule import (Row, reduce_due, rows_to_transitions, sets_touched_per_reduction,
+from .core.memory_schedule import (PendingRows, Row, reduce_due, rows_to_transitions, sets_touched_per_reduction,
                                    updates_before_reduce)
 from .core.protocol import protocol_summary
 from .core.replay import FrameReplay
@@ -84,6 +85,7 @@ class ComperNode(AgentNode):
     """The COMPER / COMPER-F / COMPER-M / DQN learner node (see the module text); the shared
     machinery is AgentNode."""
 
+    NODE_NAME = "comper_node"
     CONFIG = ComperNodeConfig
     LEARNER_CONFIGS = {"comper": ComperConfig, "comper_f": ComperConfig, "comper_m": ComperConfig,
                        "dqn": DQNConfig}
@@ -95,9 +97,6 @@ class ComperNode(AgentNode):
     QT_START_HINT = " -p architecture:=comper -p reduce_batch:=1000"
     NAMES = {"comper": "COMPER (RTM sampling, QT target)", "comper_f": "COMPER-F (RTM sampling, DQN target network)",
              "comper_m": "COMPER-M (TM sampling, QT target)", "dqn": "DQN baseline (replay + target network)"}
-
-    def __init__(self, node_name: str = "comper_node", **node_kwargs):
-        super().__init__(node_name, **node_kwargs)
 
     def _profile_overrides(self, values: dict) -> dict:
         if "profile" not in values:
@@ -122,15 +121,10 @@ class ComperNode(AgentNode):
         if self.uses_qt and self.reducer != "qt_trainer":
             raise ValueError(f"{p.algorithm} needs QT: use reducer:=qt_trainer (or auto)")
         self.sample_source = "tm" if p.algorithm == "comper_m" else "rtm"
-
-    def _sim_protocol(self) -> dict:
-        """The sim parameters the learner's settings fix (ALE: frames per observation, frame pooling)."""
-        if not self.is_atari:
-            return {}
-        return {"frame_stack": int(self.cfg.frame_stack), "frame_pooling": self.cfg.frame_pooling}
-
-    def _embedded_params(self) -> tuple[dict, dict, dict]:
-        return (self._sim_protocol(), {"reduce_batch": int(self.p.reduce_batch)}, {"architecture": "comper"})
+        # the sim parameters the learner's settings fix (ALE: frames per observation, frame pooling)
+        self.sim_protocol = ({"frame_stack": int(self.cfg.frame_stack), "frame_pooling": self.cfg.frame_pooling}
+                             if self.is_atari else {})
+        self.embedded_params = (self.sim_protocol, {"reduce_batch": int(p.reduce_batch)}, {"architecture": "comper"})
 
     def _check_env(self, info) -> None:
         from .core.comper import resolve_q_network
@@ -154,6 +148,11 @@ class ComperNode(AgentNode):
                                  f"(start the sim with -p frame_pooling:={self.cfg.frame_pooling})")
         self.network = resolve_q_network(self.cfg.q_network, self.obs_shape)
         self.frame_skip = max(1, int(info.frame_skip))
+        est_steps = int(math.ceil(self.p.total_frames / self.frame_skip))
+        self.progress_total = min(est_steps, self.p.max_steps) if self.p.max_steps > 0 else est_steps
+        self.env_description = {"env_id": info.env_id, "observation_shape": list(self.obs_shape),
+                                "num_actions": int(info.num_actions), "frame_skip": self.frame_skip,
+                                "episode_end": self.episode_rule, "spec": json.loads(info.spec_json or "{}")}
 
     # ------------------------------------------------------------------------------ setup / state
     def _setup_learner(self) -> None:
@@ -169,14 +168,16 @@ class ComperNode(AgentNode):
                 from .core.replay import ReplayBuffer
                 self.replay = ReplayBuffer(self.cfg.replay_size, self.obs_shape, seed=self.cfg.seed)
         if self.eval_every > 0:
-            self._open_eval_env(**self._sim_protocol())
+            self.evaluation = Evaluation(self, self._eval_action, self._eval_recorded, self.frame_skip,
+                                         **self.sim_protocol)
+        if self.mem is not None:
+            self.mem.on_reduced = self._after_reduce
         self.frames = 0              # emulator frames of the run, skipped ones included
         self.returns: list[float] = []
         self.return_frames: list[int] = []      # the run's frames when each training episode ended
-        self.restored = 0
         self.updates = 0
         self.last_reduce_step = -(10 ** 9)
-        self.restore: Transitions | None = None
+        self.pending = PendingRows()            # agent steps not yet stored (the newest may wait for its label)
         self.set_counts: list[np.ndarray] = []
         self.last_stats: dict = {}
 
@@ -188,31 +189,21 @@ class ComperNode(AgentNode):
         self.return_frames = [int(x) for x in state.get("return_frames", [])]
         if len(self.return_frames) != len(self.returns):   # a checkpoint from before they were kept
             self.return_frames = [-1] * (len(self.returns) - 1) + [self.frames] if self.returns else []
-        if hasattr(self, "evals"):
-            self.evals = list(state.get("evals", []))
 
     def _state(self) -> dict:
         st = super()._state()
         st["counters"].update(frames=self.frames, updates=self.updates)
         st["returns"] = list(self.returns)
         st["return_frames"] = list(self.return_frames)
-        st["evals"] = list(getattr(self, "evals", []))
         return st
 
     def _run_config(self) -> dict:
         return {**super()._run_config(),
                 "profile": {"name": self.profile, "values": {k: {"value": v, "source": src} for k, (v, src)
                                                               in COMPER_PROFILES[self.profile].items()}},
-                "q_network": self.network, "eval_every": self.eval_every,
-                "env": {"env_id": self.info.env_id, "observation_shape": list(self.obs_shape),
-                        "num_actions": int(self.info.num_actions), "frame_skip": self.frame_skip,
-                        "episode_end": self.episode_rule, "spec": json.loads(self.info.spec_json or "{}")}}
+                "q_network": self.network, "eval_every": self.eval_every}
 
     # ------------------------------------------------------------------------------ main loop
-    def _progress_total(self) -> int:
-        est_steps = int(math.ceil(self.p.total_frames / self.frame_skip))
-        return min(est_steps, self.p.max_steps) if self.p.max_steps > 0 else est_steps
-
     def _start_line(self) -> str:
         p, c = self.p, self.cfg
         return (f"{self.NAMES[p.algorithm]} on {p.env_id} (obs {list(self.obs_shape)} {np.dtype(self.OBS_DTYPE).name}, "
@@ -241,7 +232,7 @@ class ComperNode(AgentNode):
         self.next_stats = next_due(self.step, p.stats_every)
         self.next_eval = next_due(self.step, self.eval_every)
         if self.eval_every > 0 and self.step == 0:
-            self.evaluate()       # the untrained policy: the curve's first point
+            self.evaluation.run(self.step, self.frames)       # the untrained policy: the curve's first point
 
     def _loop(self) -> None:
         p = self.p
@@ -258,15 +249,16 @@ class ComperNode(AgentNode):
                 self._memory_record()
                 self.next_stats += p.stats_every
             if self.next_eval is not None and self.step >= self.next_eval:
-                self.evaluate()
+                self.evaluation.run(self.step, self.frames)
                 self.next_eval += self.eval_every
             self._after_step()
-        last_eval = self.evals[-1]["step"] if self.eval_every > 0 and self.evals else None
+        evals = self.evaluation.records if self.evaluation is not None else []
+        last_eval = evals[-1]["step"] if self.eval_every > 0 and evals else None
         if self.eval_every > 0 and not self.stop_event.is_set() and last_eval != self.step:
-            self.evaluate()       # the final policy
+            self.evaluation.run(self.step, self.frames)       # the final policy
         if self.uses_memory and self.pending:
-            last = self.pending[-1]
-            if last.label is None:    # stopped mid-episode: label the last one too
+            last = self.pending.newest_unlabelled()
+            if last is not None:    # stopped mid-episode: label the last one too
                 last.label = float(self.learner.act(last.next_state, epsilon=0.0)[1].max()) \
                     * (0.0 if last.terminated else 1.0)
             self._flush(with_restore=False)
@@ -289,12 +281,12 @@ class ComperNode(AgentNode):
             extra += f" | loss {self.last_update['loss']:.4f}"
         self.log.info(line + extra)
         rate = self.progress.rate
-        self.metrics.write("progress", step=self.step, frames=self.frames, steps_per_s=rate, episodes=self.episodes,
+        self.metrics.write("progress", step=self.step, frames=self.frames, steps_per_s=rate, episodes=self.env.count,
                            wall_time_s=self.wall_time(), epsilon=eps, rtm_size=self.rtm_size, updates=self.updates,
                            reductions=self.reductions,
                            **{k: v for k, v in self.last_update.items() if isinstance(v, float)})
         self.csv.write(step=self.step, frames=self.frames, wall_time_s=round(self.wall_time(), 2),
-                       episodes=self.episodes, last_train_return=self.progress.last_episode_return, epsilon=eps,
+                       episodes=self.env.count, last_train_return=self.progress.last_episode_return, epsilon=eps,
                        steps_per_s=round(rate, 1) if math.isfinite(rate) else "", rtm_size=self.rtm_size,
                        tm_sets=self.last_stats.get("tm_sets"), identities=self.last_stats.get("identities"),
                        loss=self.last_update.get("loss"))
@@ -302,27 +294,28 @@ class ComperNode(AgentNode):
 
     # ------------------------------------------------------------------------------ episodes
     def _reset_env(self) -> np.ndarray:
-        obs = super()._reset_env()
+        obs = self.env.reset()
         self.ep_frames0, self.ep_frames = self.frames, 0
         self.new_episode = True
         self.ep_rows: list | None = None
         if self.replay is not None:
             if isinstance(self.replay, FrameReplay):
                 self.replay.end_episode()
-            if self._transitions_wanted():
+            if self.topics.transitions_wanted():
                 self.ep_rows = []     # dqn stores nothing per episode: keep the rows for ~/transitions
         return obs
 
     def _end_episode(self, terminated: bool, truncated: bool) -> None:
-        self.returns.append(float(self.ep_return))
+        ep = self.env
+        self.returns.append(float(ep.ret))
         self.return_frames.append(int(self.frames))
         if self.ep_rows:
-            self.ep_parts.append(self._transitions(self.ep_rows))
+            ep.parts.append(rows_to_transitions(self.ep_rows, ep.count, self.run_id))
             self.ep_rows = []
-        self._publish_episode(terminated, truncated, ep_frames=self.ep_frames, global_frames=self.frames,
-                              x=self.frames, frames=self.frames, episode_frames=self.ep_frames,
-                              epsilon=self.learner.epsilon(self.frames))
-        self.log.info(f"episode {self.episodes - 1}: return {self.ep_return:.1f}, {self.ep_len} steps, "
+        ep.end(terminated, truncated, step=self.step, ep_frames=self.ep_frames, global_frames=self.frames,
+               x=self.frames, frames=self.frames, episode_frames=self.ep_frames,
+               epsilon=self.learner.epsilon(self.frames))
+        self.log.info(f"episode {ep.count - 1}: return {ep.ret:.1f}, {ep.length} steps, "
                       f"{self.ep_frames} frames; run {self.frames}/{self.p.total_frames} frames")
 
     # ------------------------------------------------------------------------------ stepping
@@ -330,9 +323,10 @@ class ComperNode(AgentNode):
         c = self.cfg
         with self.ptimers("learner"):
             a, q = self.learner.act(obs, frames=self.frames)
-        if self.pending and self.pending[-1].label is None:     # next_value label of the previous transition
-            self.pending[-1].label = float(q.max())
-        r, nxt = self._sim_step(a)
+        waiting = self.pending.newest_unlabelled()
+        if waiting is not None:     # next_value label of the previous transition
+            waiting.label = float(q.max())
+        r, nxt = self.env.step(a)
         term, trunc = bool(r.terminated), bool(r.truncated)
         self.ep_frames = int(r.frames)
         self.frames = self.ep_frames0 + self.ep_frames
@@ -363,7 +357,7 @@ class ComperNode(AgentNode):
         self.step += 1
         if self.step % c.train_frequency == 0 and self.step >= c.learning_starts:
             self._train_step()
-        elif self.uses_memory and (over or self._labelled() >= self.p.store_every):
+        elif self.uses_memory and (over or self.pending.labelled() >= self.p.store_every):
             self._flush(with_restore=False)
         if over:
             if self.uses_memory:
@@ -371,33 +365,15 @@ class ComperNode(AgentNode):
             self._end_episode(term, trunc)
         return nxt, over
 
-    def _labelled(self) -> int:
-        n = len(self.pending)
-        return n - 1 if n and self.pending[-1].label is None else n
-
-    def _transitions(self, rows: list[Row]) -> Transitions:
-        """This episode's transitions (labels left empty when the rows have none: dqn)."""
-        return rows_to_transitions(rows, self.episodes, self.run_id)
-
     def _flush(self, with_restore: bool) -> None:
         """One store call: the labelled new transitions (+ the previous update's batch re-stored)."""
-        n = self._labelled()
-        parts = []
-        if n:
-            rows, self.pending = self.pending[:n], self.pending[n:]
-            t = self._transitions(rows)
-            parts.append(t)
-            self.ep_parts.append(t)
-            self.stored += n
-        if with_restore and self.restore is not None:
-            parts.append(self.restore)
-            self.restored += len(self.restore)
-            self.restore = None
-        if not parts:
-            return
-        t = parts[0] if len(parts) == 1 else Transitions.concatenate(parts)
-        with self.ptimers("memory"):
-            self.mem.store(t)
+        rows = self.pending.take_labelled()
+        t = None
+        if rows:
+            t = rows_to_transitions(rows, self.env.count, self.run_id)
+            self.env.parts.append(t)
+            self.stored += len(rows)
+        self.mem.store(t, with_restore=with_restore)
 
     # ------------------------------------------------------------------------------ memory
     def _reduce(self) -> None:
@@ -490,7 +466,7 @@ class ComperNode(AgentNode):
                 self.last_update = self.learner.update(batch, targets)
                 if p.restore_batch:
                     batch.value_labels = self.learner.value_labels(batch)
-                    self.restore = batch
+                    self.mem.queue_restore(batch)
         self.updates += 1
         if self.learner.uses_target_net and self.step % c.target_update_every < c.train_frequency:
             self.learner.sync_target()
@@ -504,7 +480,7 @@ class ComperNode(AgentNode):
 
     def _eval_recorded(self, rec: dict) -> None:
         self.csv.write(step=self.step, frames=self.frames, wall_time_s=round(self.wall_time(), 2),
-                       episodes=self.episodes, eval_mean_return=rec["mean_return"])
+                       episodes=self.env.count, eval_mean_return=rec["mean_return"])
 
     # ------------------------------------------------------------------------------ time split / summary
     def _timer_notes(self, rec: dict, elapsed: float, steps: int) -> tuple[str, str]:
@@ -516,9 +492,8 @@ class ComperNode(AgentNode):
                 "(part of qt); qt_model_rebuild runs in the executor thread")
 
     def _finish(self, elapsed: float, steps: int, timers: dict) -> None:
-        self._write_summary(elapsed, steps, self.frames - self.start_frames, timers)
-
-    def _write_summary(self, elapsed: float, steps: int, frames: int, timers: dict) -> None:
+        """summary.json: the protocol's figures (last episodes, terciles) and the run's totals."""
+        frames = self.frames - self.start_frames
         s = protocol_summary(self.returns, self.return_frames, self.p.total_frames)
         summary = {"run_id": self.run_id, "algorithm": self.p.algorithm, "env_id": self.p.env_id, "profile": self.profile,
                    "seed": int(self.cfg.seed), "frame_stack": int(self.cfg.frame_stack),
@@ -527,7 +502,7 @@ class ComperNode(AgentNode):
                    "complete": bool(self.frames >= self.p.total_frames and not self.stop_event.is_set()),
                    "episode_returns": self.returns, "protocol": s,
                    "evaluations": [{k: e[k] for k in ("step", "mean_return", "std_return")}
-                                   for e in getattr(self, "evals", [])],
+                                   for e in (self.evaluation.records if self.evaluation is not None else [])],
                    "wall_time_s": self.wall_time(), "session_elapsed_s": elapsed,
                    "session_steps_per_s": steps / elapsed if elapsed > 0 else None,
                    "session_frames": frames, "memory": self.last_stats, "timers": timers,
@@ -535,11 +510,11 @@ class ComperNode(AgentNode):
                                            self.sample_source),
                                 "target": "qt" if self.uses_qt else "target_network",
                                 "reducer": self.reducer, "sample_calls": int(self.mem.sample_calls if self.mem else 0),
-                                "restored": int(self.restored)}}
+                                "restored": int(self.mem.restored if self.mem else 0)}}
         run_io.write_text_atomic(self.run_dir.file("summary.json"), json.dumps(summary, indent=1, default=float))
         t = " | ".join(f"tercile {j + 1} (to episode {x['end_episode']}): {x['mean']:.1f} +- {x['std']:.1f}"
                        for j, x in enumerate(s["terciles"]))
-        self.log.info(f"done: {self.step} steps, {self.frames} frames, {self.episodes} episodes; mean of the last "
+        self.log.info(f"done: {self.step} steps, {self.frames} frames, {self.env.count} episodes; mean of the last "
                       f"{s['last_k']} episodes {s['last_mean']:.1f} +- {s['last_std']:.1f}; {t}; "
                       f"summary {self.run_dir.file('summary.json')}")
 

@@ -4,7 +4,8 @@ It holds the :class:`~comper_memory.client.MemoryClient` (store, sample, stats),
 :class:`~comper_memory.client.ReductionClient` of the reducer (the QT trainer, or the memory node
 for COMPER-F) and the subscription to the QT trainer's ``qt_model``, and it keeps what the learner
 needs between calls: the RTM and TM sizes, the update batches prefetched from the current RTM, the
-reduction in flight (``reduce_overlap``) and the newest QT model. *When* to store, reduce and how
+updated batches waiting to be stored again with fresh labels (``restore_batch``), the reduction in
+flight (``reduce_overlap``) and the newest QT model. *When* to store, reduce and how
 many batches to fetch is the pure schedule of :mod:`comper_agent.core.memory_schedule`.
 """
 from __future__ import annotations
@@ -29,7 +30,7 @@ class MemoryLink:
     (memory_node, qt_trainer_node, service_timeout_s, prefetch_batches, reduce_overlap, reduce_batch,
     qt_epochs, qt_wait_s); reducer: 'qt_trainer' or 'memory'; uses_qt: subscribe to the QT model;
     timers: the node's run_io.PhaseTimers; on_reduced(reply): called after each reduction's answer
-    that :meth:`collect` finishes."""
+    that :meth:`collect` finishes (a node may set it later)."""
 
     def __init__(self, node, p, *, reducer: str, uses_qt: bool, timers, device: str | None = "cpu",
                  on_reduced: Callable[[ReduceReply], None] | None = None):
@@ -55,6 +56,8 @@ class MemoryLink:
         self.last_reduce: dict = {}
         self.sample_calls = 0
         self.prefetched: list = []            # (batch, counts) drawn from the current RTM, next last
+        self.restore: list[Transitions] = []   # restore_batch: updated batches with fresh labels, not yet stored
+        self.restored = 0                      # transitions stored again so far
         self.in_flight: PendingCall | None = None   # reduce_overlap: the reduction sent and not yet answered
 
     def services(self) -> dict:
@@ -96,8 +99,22 @@ class MemoryLink:
                 self.qt_cond.wait(max(0.0, deadline - time.monotonic()))
 
     # --- store / sample / stats ------------------------------------------------------------------
-    def store(self, t: Transitions) -> None:
-        self.memory.store(t)
+    def store(self, t: Transitions | None, with_restore: bool = True) -> None:
+        """One store call (timed as 'memory'): `t` (new labelled transitions, or None) and, with_restore,
+        the re-stored batches waiting (:meth:`queue_restore`); nothing when there is neither."""
+        parts = ([t] if t is not None else []) + (self.restore if with_restore else [])
+        if not parts:
+            return
+        if with_restore:
+            self.restored += sum(len(x) for x in self.restore)
+            self.restore = []
+        with self.timers("memory"):
+            self.memory.store(parts[0] if len(parts) == 1 else Transitions.concatenate(parts))
+
+    def queue_restore(self, batch: Transitions) -> None:
+        """restore_batch: `batch` (an update's batch, labelled after that update) goes out again with
+        the next store call that takes the re-stores (Algorithm 7 / thesis 4.1.1)."""
+        self.restore.append(batch)
 
     def stats(self) -> dict:
         d = self.memory.stats()

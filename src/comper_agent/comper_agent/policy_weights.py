@@ -88,6 +88,14 @@ class PolicyPublisher:
             self.context.try_shutdown()
             raise
         self.topic_name = self.pub.topic_name
+        self.published = 0
+
+    def send(self, learner, env_steps: int, final: bool = False) -> None:
+        """The learner's current actor and critic (version: its update count), stamped and published."""
+        msg = policy_to_msg(learner, version=learner.updates, env_steps=env_steps, final=final)
+        msg.header.stamp = self.stamp()
+        self.publish(msg)
+        self.published += 1
 
     def publish(self, msg: PolicyWeights) -> None:
         self.pub.publish(msg)

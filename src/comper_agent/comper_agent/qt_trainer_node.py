@@ -94,8 +94,6 @@ class QtTrainerNode(Node):
             raise ValueError(f"qt_architecture:={self.qt_config.qt_architecture} contradicts "
                              f"architecture:={arch}; set architecture only")
         self.memory_name = p.memory_node.strip("/")
-        self.reduce_batch, self.period_s = p.reduce_batch, p.period_s
-        self.call_timeout_s, self.num_threads = p.call_timeout_s, p.num_threads
 
         from comper_memory.core import transition_keys
 
@@ -107,18 +105,18 @@ class QtTrainerNode(Node):
         self.last_duration_s = 0.0
 
         self._group = ReentrantCallbackGroup()
-        self.memory = MemoryClient(self, f"/{self.memory_name}", timeout=self.call_timeout_s,
+        self.memory = MemoryClient(self, f"/{self.memory_name}", timeout=p.call_timeout_s,
                                    callback_group=self._group)
         self._pub = self.create_publisher(QTModelMsg, "~/qt_model", QT_MODEL_QOS)
         self.create_service(Reduce, "~/reduce", self._on_reduce, callback_group=self._group)
-        if self.period_s > 0:
-            self.create_timer(self.period_s, self._on_timer, callback_group=MutuallyExclusiveCallbackGroup())
+        if p.period_s > 0:
+            self.create_timer(p.period_s, self._on_timer, callback_group=MutuallyExclusiveCallbackGroup())
         c = self.qt_config
         self.get_logger().info(
             f"QT trainer ready: architecture {arch} (LSTM {list(c.qt_lstm_units)}, dense {c.qt_dense_units}, "
             f"{c.qt_output_activation} output), RMSProp lr {c.qt_lr:g}, batch {c.qt_batch_size}, "
             f"epochs {c.qt_epochs}; memory /{self.memory_name}; reduce_batch "
-            f"{self.reduce_batch or 'memory default'}; timer {'off' if self.period_s <= 0 else f'{self.period_s:g} s'}")
+            f"{p.reduce_batch or 'memory default'}; timer {'off' if p.period_s <= 0 else f'{p.period_s:g} s'}")
 
     def make_executor(self, context=None):
         """Multi-threaded: the reduce service waits on nested calls to the memory node."""
@@ -150,7 +148,7 @@ class QtTrainerNode(Node):
             t0 = time.monotonic()
             if not self.memory.ready() and not self.memory.wait_for_service(5.0):
                 raise ServiceError(f"/{self.memory_name}/reduce_begin is not available")
-            lease = self.memory.reduce_begin(int(max_sets or self.reduce_batch))
+            lease = self.memory.reduce_begin(int(max_sets or self.p.reduce_batch))
             m = len(lease)
             loss = float("nan")
             if m == 0:
@@ -213,7 +211,7 @@ def main(args=None) -> int:
     Multi-threaded: the reduce service waits on nested calls to the memory node."""
     from .core.networks import configure_torch
     return serve_node(QtTrainerNode, "qt_trainer_node", args,
-                      on_ready=lambda node: configure_torch(node.num_threads or 1))
+                      on_ready=lambda node: configure_torch(node.p.num_threads or 1))
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-__all__ = ["Row", "rows_to_transitions", "reduce_due", "updates_before_reduce", "batches_per_sample",
+__all__ = ["Row", "PendingRows", "rows_to_transitions", "reduce_due", "updates_before_reduce", "batches_per_sample",
            "sets_touched_per_reduction"]
 
 
@@ -31,6 +31,36 @@ class Row:
     truncated: bool
     step: int
     label: float | None = None
+
+
+class PendingRows:
+    """COMPER's agent steps waiting to be stored. A step's value label (next_value: max_a Q(s', a))
+    comes from the Q-values computed to act at the next step, so the newest row may still wait for
+    its label; only the labelled rows before it can be stored."""
+
+    def __init__(self):
+        self.rows: list[Row] = []
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def append(self, row: Row) -> None:
+        self.rows.append(row)
+
+    def newest_unlabelled(self) -> Row | None:
+        """The newest row if it still waits for its label, else None."""
+        return self.rows[-1] if self.rows and self.rows[-1].label is None else None
+
+    def labelled(self) -> int:
+        """How many rows, oldest first, have their label."""
+        n = len(self.rows)
+        return n - 1 if self.newest_unlabelled() is not None else n
+
+    def take_labelled(self) -> list[Row]:
+        """Remove and return the labelled rows (oldest first)."""
+        n = self.labelled()
+        rows, self.rows = self.rows[:n], self.rows[n:]
+        return rows
 
 
 def rows_to_transitions(rows: list[Row], episode_id: int, run_id: str) -> Transitions:
