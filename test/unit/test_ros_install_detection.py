@@ -4,8 +4,6 @@ The full-install path of setup.sh itself is not exercised here (no ROS install o
 import os
 import subprocess
 
-import pytest
-
 from conftest import ROOT
 
 SCRIPT = str(ROOT / "scripts" / "ros_install.sh")

@@ -389,15 +389,20 @@ def topic_main(argv) -> int:
         return _topic_hz(g, args)
 
 
-def _topic_list(g, args) -> int:
-    topics = [(n, t) for n, t in g.node.get_topic_names_and_types()
-              if args.include_hidden_topics or not is_hidden_name(n)]
-    if args.count_topics:
-        print(len(topics))
+def print_names_and_types(names_and_types, *, hidden: bool, count: bool, show_types: bool) -> int:
+    """What ``ros2 topic list`` / ``ros2 service list`` print for [(name, [types])]."""
+    shown = sorted((n, t) for n, t in names_and_types if hidden or not is_hidden_name(n))
+    if count:
+        print(len(shown))
         return 0
-    for name, types in sorted(topics):
-        print(f"{name} [{', '.join(types)}]" if args.show_types else name)
+    for name, types in shown:
+        print(f"{name} [{', '.join(types)}]" if show_types else name)
     return 0
+
+
+def _topic_list(g, args) -> int:
+    return print_names_and_types(g.node.get_topic_names_and_types(), hidden=args.include_hidden_topics,
+                                 count=args.count_topics, show_types=args.show_types)
 
 
 def _wait_topic_type(g, topic: str, timeout: float) -> str | None:
@@ -517,14 +522,9 @@ def service_main(argv) -> int:
     _spin_arg(ls)
     args = p.parse_args(argv)
     with _Graph(args.spin_time) as g:
-        services = [(n, t) for n, t in g.node.get_service_names_and_types()
-                    if args.include_hidden_services or not is_hidden_name(n)]
-    if args.count_services:
-        print(len(services))
-        return 0
-    for name, types in sorted(services):
-        print(f"{name} [{', '.join(types)}]" if args.show_types else name)
-    return 0
+        services = g.node.get_service_names_and_types()
+    return print_names_and_types(services, hidden=args.include_hidden_services, count=args.count_services,
+                                 show_types=args.show_types)
 
 
 def node_main(argv) -> int:
@@ -541,7 +541,8 @@ def node_main(argv) -> int:
     if args.count_nodes:
         print(len(names))
         return 0
-    print("\n".join(names)) if names else None
+    for name in names:
+        print(name)
     return 0
 
 
@@ -572,7 +573,7 @@ def param_main(argv) -> int:
             for node in nodes:
                 listed = _list_params(g, node, args.param_prefixes, args.timeout)
                 if listed is None:
-                    print(f"Node not found" if args.node_name else f"Exception while calling service of node "
+                    print("Node not found" if args.node_name else f"Exception while calling service of node "
                           f"'{node}'", file=sys.stderr)
                     rc = 1
                     continue
