@@ -407,12 +407,16 @@ def _topic_list(g, args) -> int:
 
 def _wait_topic_type(g, topic: str, timeout: float) -> str | None:
     end = time.monotonic() + timeout if timeout > 0 else math.inf
+    warned = False
     while True:
         types = dict(g.node.get_topic_names_and_types()).get(topic)
         if types:
             return types[0]
         if time.monotonic() >= end or not g.context.ok():
             return None
+        if not warned:
+            print(f"WARNING: topic [{topic}] does not appear to be published yet", file=sys.stderr, flush=True)
+            warned = True
         g.spin(0.1)
 
 
