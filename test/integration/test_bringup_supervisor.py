@@ -1,7 +1,8 @@
 """`ros2 run comper_agent bringup`: the suite as supervised separate processes (sim, memory, QT trainer,
 comcact_node with bringup:=external), real ROS, no mocks. A short job runs to its end and the servers are
 stopped cleanly; Ctrl-C (SIGINT to the supervisor) is forwarded and the learner saves; a node killed
-from outside is reported with its exit status and the others are stopped, the bring-up exits non-zero."""
+from outside is reported with its exit status and the others are stopped, the bring-up exits non-zero; the
+nodes stop when the supervisor itself is killed."""
 import os
 import re
 import signal
@@ -125,3 +126,28 @@ def test_a_node_that_dies_is_reported_and_the_rest_are_stopped(bringup, tmp_path
         pid = int(re.search(rf"^\[bringup\] started {name} \(pid (\d+)\)", log, re.M).group(1))
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
+
+
+def test_the_nodes_stop_when_the_supervisor_itself_is_killed(bringup, tmp_path):
+    b = bringup("orphan", "-p", "algorithm:=ddpg", "-p", "total_steps:=100000", "-p", "eval_every:=0")
+    b.wait_for(rf"^\[{LEARNER}\] .*step \d+/100000")
+    log = b.log()
+    pids = [int(re.search(rf"^\[bringup\] started {name} \(pid (\d+)\)", log, re.M).group(1))
+            for name in (NAMES["sim_node"], LEARNER)]
+    os.kill(b.proc.pid, signal.SIGKILL)           # the supervisor only: its children are in their own sessions
+    b.proc.wait()
+    deadline = time.monotonic() + 120
+    alive = pids
+    while alive and time.monotonic() < deadline:
+        alive = [p for p in alive if _running(p)]
+        time.sleep(0.5)
+    # the kernel signals every child at once here (no learner-first order), so a final checkpoint is not promised
+    assert not alive, f"still running after the supervisor was killed: {alive}"
+
+
+def _running(pid) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False

@@ -29,7 +29,8 @@ When the learner finishes, the servers are stopped and the exit status is the le
 exits on its own otherwise (a server at any time, the learner with a non-zero status), the supervisor
 prints ``[bringup] <name> exited with code N``, stops the others the same way and exits non-zero (the
 node's code, 128 + signal for a node killed by a signal, 1 for a server that exited with 0). A process
-that does not stop within ``--stop-timeout`` seconds of SIGINT gets SIGTERM, then SIGKILL.
+that does not stop within ``--stop-timeout`` seconds of SIGINT gets SIGTERM, then SIGKILL. If the supervisor
+itself dies (even by SIGKILL), every child gets SIGTERM from the kernel (PR_SET_PDEATHSIG) and stops.
 
 The pure part (which processes, with which arguments: :func:`plan`) is unit-tested; the supervision by
 test/integration/test_bringup_supervisor.py.
@@ -37,6 +38,7 @@ test/integration/test_bringup_supervisor.py.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import signal
 import subprocess
@@ -201,11 +203,14 @@ class Supervisor:
         self.wake.set()
 
     def start(self, spec: ProcSpec) -> None:
+        from .recording_link import _die_with_parent
         cmd = spec.command(_executable_path(spec))
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        # a session of its own: a terminal's Ctrl-C reaches the supervisor only, which forwards it once
+        # a session of its own: a terminal's Ctrl-C reaches the supervisor only, which forwards it once;
+        # PR_SET_PDEATHSIG: a child gets SIGTERM (and stops cleanly) if the supervisor dies, even by SIGKILL
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                start_new_session=True, env=env)
+                                start_new_session=True, env=env,
+                                preexec_fn=functools.partial(_die_with_parent, os.getpid()))
         self.children[spec.name] = proc
         t = threading.Thread(target=self._pump, args=(spec.name, proc.stdout), daemon=True, name=f"log-{spec.name}")
         t.start()
