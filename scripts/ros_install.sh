@@ -25,7 +25,10 @@ is_jazzy_prefix() {  # a sourced-able ROS prefix that contains rclpy
 
 detect() {
   local want=${COMPER_ROS:-auto} root=${COMPER_ROS_ROOT:-/opt/ros} distro=${ROS_DISTRO:-}
-  case "$want" in auto|pypi|system) ;; *) echo "error: COMPER_ROS must be auto, pypi or system, not '$want'" >&2; return 1;; esac
+  case "$want" in
+    auto|pypi|system) ;;
+    *) echo "error: COMPER_ROS must be auto, pypi or system, not '$want'" >&2; return 1 ;;
+  esac
   if [ "$want" = pypi ]; then
     echo pypi; return 0
   fi

@@ -60,7 +60,8 @@ def test_dry_run_prints_the_plan(capsys):
     assert main(["--learner", "comcact_node", "--dry-run", "--ros-args", "-p", "algorithm:=ddpg"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[0].startswith("sim_node: ros2 run comper_sim sim_node --ros-args -p algorithm:=ddpg")
-    assert out[1] == "comcact_node: ros2 run comper_agent comcact_node --ros-args -p algorithm:=ddpg -p bringup:=external"
+    assert out[1] == ("comcact_node: ros2 run comper_agent comcact_node --ros-args -p algorithm:=ddpg "
+                      "-p bringup:=external")
 
 
 def _launch_file():

@@ -68,6 +68,12 @@ class ProcSpec:
         return [exe, "--ros-args", *self.ros_args] if self.ros_args else [exe]
 
 
+def _is_node_remap(flag: str, value: str | None) -> bool:
+    """``-r __node:=name`` (or ``--remap``, ``__name``, ``<node>:__node``): a rename of the node."""
+    return (flag in ("-r", "--remap") and value is not None and ":=" in value
+            and value.split(":=", 1)[0].split(":")[-1] in ("__node", "__name"))
+
+
 def parse_ros_args(ros_args: list[str], learner_name: str) -> tuple[dict, list[str], str]:
     """The parameters set by ``-p``/``--param`` and by ``--params-file`` (its ``/**`` and learner-name
     sections), the arguments without the learner's ``-r __node:=`` remap, and the learner's name."""
@@ -76,7 +82,7 @@ def parse_ros_args(ros_args: list[str], learner_name: str) -> tuple[dict, list[s
     forwarded: list[str] = []
     name = learner_name
     for a, b in zip(ros_args, ros_args[1:]):          # the learner's name first: it selects a params-file section
-        if a in ("-r", "--remap") and b.split(":=", 1)[0].split(":")[-1] in ("__node", "__name") and ":=" in b:
+        if _is_node_remap(a, b):
             name = b.split(":=", 1)[1]
     i = 0
     while i < len(ros_args):
@@ -94,7 +100,7 @@ def parse_ros_args(ros_args: list[str], learner_name: str) -> tuple[dict, list[s
                 values.update((doc.get(section) or {}).get("ros__parameters") or {})
             forwarded += [a, nxt]
             i += 2
-        elif a in ("-r", "--remap") and nxt is not None and nxt.split(":=", 1)[0].split(":")[-1] in ("__node", "__name"):
+        elif _is_node_remap(a, nxt):
             i += 2
         else:
             forwarded.append(a)

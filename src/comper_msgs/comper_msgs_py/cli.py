@@ -330,6 +330,11 @@ def _parser(prog: str, description: str) -> argparse.ArgumentParser:
     return argparse.ArgumentParser(prog=prog, description=f"{description} {NOTE}.")
 
 
+def _verb(sub, name: str, help_text: str, description: str):
+    """A verb's parser; its description ends with the stand-in label (every --help says what it is)."""
+    return sub.add_parser(name, help=help_text, description=f"{description} {NOTE}.")
+
+
 def _spin_arg(p):
     p.add_argument("--spin-time", type=float, default=0.5,
                    help="seconds to wait for discovery (there is no daemon; default 0.5), then on until the graph "
@@ -341,12 +346,12 @@ def _spin_arg(p):
 def topic_main(argv) -> int:
     p = _parser("ros2 topic", "Various topic related sub-commands.")
     sub = p.add_subparsers(dest="verb", required=True, metavar="{list,echo,hz}")
-    ls = sub.add_parser("list", help="Output a list of available topics", description=f"Output a list of available topics. {NOTE}.")
+    ls = _verb(sub, "list", "Output a list of available topics", "Output a list of available topics.")
     ls.add_argument("-t", "--show-types", action="store_true", help="Additionally show the topic type")
     ls.add_argument("-c", "--count-topics", action="store_true", help="Only display the number of topics discovered")
     ls.add_argument("--include-hidden-topics", action="store_true", help="Consider hidden topics as well")
     _spin_arg(ls)
-    ec = sub.add_parser("echo", help="Output messages from a topic", description=f"Output messages from a topic. {NOTE}.")
+    ec = _verb(sub, "echo", "Output messages from a topic", "Output messages from a topic.")
     ec.add_argument("topic_name")
     ec.add_argument("message_type", nargs="?", help="Type of the ROS message (e.g. 'std_msgs/msg/String'); "
                                                     "taken from the graph when omitted")
@@ -369,8 +374,8 @@ def topic_main(argv) -> int:
     ec.add_argument("--qos-durability", choices=("volatile", "transient_local"),
                     help="Durability to subscribe with (default: what the publishers offer)")
     _spin_arg(ec)
-    hz = sub.add_parser("hz", help="Print the average publishing rate to screen",
-                        description=f"Print the average receiving rate of a topic, once a second. {NOTE}.")
+    hz = _verb(sub, "hz", "Print the average publishing rate to screen",
+               "Print the average receiving rate of a topic, once a second.")
     hz.add_argument("topic_name")
     hz.add_argument("-w", "--window", type=int, default=10000,
                     help="window size, in # of messages, for calculating rate (default 10000)")
@@ -518,8 +523,7 @@ class _HzQos:
 def service_main(argv) -> int:
     p = _parser("ros2 service", "Various service related sub-commands.")
     sub = p.add_subparsers(dest="verb", required=True, metavar="{list}")
-    ls = sub.add_parser("list", help="Output a list of available services",
-                        description=f"Output a list of available services. {NOTE}.")
+    ls = _verb(sub, "list", "Output a list of available services", "Output a list of available services.")
     ls.add_argument("-t", "--show-types", action="store_true", help="Additionally show the service type")
     ls.add_argument("-c", "--count-services", action="store_true", help="Only display the number of services")
     ls.add_argument("--include-hidden-services", action="store_true", help="Consider hidden services as well")
@@ -534,8 +538,7 @@ def service_main(argv) -> int:
 def node_main(argv) -> int:
     p = _parser("ros2 node", "Various node related sub-commands.")
     sub = p.add_subparsers(dest="verb", required=True, metavar="{list}")
-    ls = sub.add_parser("list", help="Output a list of available nodes",
-                        description=f"Output a list of available nodes. {NOTE}.")
+    ls = _verb(sub, "list", "Output a list of available nodes", "Output a list of available nodes.")
     ls.add_argument("-a", "--all", action="store_true", help="Display all nodes even hidden ones")
     ls.add_argument("-c", "--count-nodes", action="store_true", help="Only display the number of nodes discovered")
     _spin_arg(ls)
@@ -553,17 +556,16 @@ def node_main(argv) -> int:
 def param_main(argv) -> int:
     p = _parser("ros2 param", "Various param related sub-commands.")
     sub = p.add_subparsers(dest="verb", required=True, metavar="{list,get,dump}")
-    ls = sub.add_parser("list", help="Output a list of available parameters",
-                        description=f"Output a list of available parameters. {NOTE}.")
+    ls = _verb(sub, "list", "Output a list of available parameters", "Output a list of available parameters.")
     ls.add_argument("node_name", nargs="?", help="Name of the ROS node (all nodes if omitted)")
     ls.add_argument("--param-prefixes", nargs="+", default=[], help="Only list parameters with these prefixes")
     ls.add_argument("--param-type", action="store_true", help="Print parameter types with parameter names")
-    ge = sub.add_parser("get", help="Get parameter", description=f"Get parameter. {NOTE}.")
+    ge = _verb(sub, "get", "Get parameter", "Get parameter.")
     ge.add_argument("node_name")
     ge.add_argument("parameter_name")
     ge.add_argument("--hide-type", action="store_true", help="Hide the type information")
-    du = sub.add_parser("dump", help="Show all of the parameters of a node in a YAML file format",
-                        description=f"Show all of the parameters of a node in a YAML file format. {NOTE}.")
+    du = _verb(sub, "dump", "Show all of the parameters of a node in a YAML file format",
+               "Show all of the parameters of a node in a YAML file format.")
     du.add_argument("node_name")
     for s in (ls, ge, du):
         s.add_argument("--timeout", type=float, default=10.0,
@@ -642,8 +644,8 @@ def _describe_types(g, node: str, names, timeout) -> dict:
 def interface_main(argv) -> int:
     p = _parser("ros2 interface", "Show information about ROS interfaces.")
     sub = p.add_subparsers(dest="verb", required=True, metavar="{show}")
-    sh = sub.add_parser("show", help="Output the interface definition",
-                        description=f"Output the interface definition, nested types expanded. {NOTE}.")
+    sh = _verb(sub, "show", "Output the interface definition",
+               "Output the interface definition, nested types expanded.")
     sh.add_argument("type", help="Show an interface definition (e.g. 'comper_msgs/msg/EpisodeSummary')")
     sh.add_argument("--all-comments", action="store_true", help="Show all comments, including for nested types")
     sh.add_argument("--no-comments", action="store_true", help="Show no comments or whitespace")
@@ -660,8 +662,8 @@ def interface_main(argv) -> int:
 def bag_main(argv) -> int:
     p = _parser("ros2 bag", "Various rosbag related sub-commands (read with rosbags).")
     sub = p.add_subparsers(dest="verb", required=True, metavar="{info}")
-    inf = sub.add_parser("info", help="Print information about a bag to the screen",
-                         description=f"Print information about a bag (a rosbag2 directory). {NOTE}.")
+    inf = _verb(sub, "info", "Print information about a bag to the screen",
+                "Print information about a bag (a rosbag2 directory).")
     inf.add_argument("bag_path", help="Bag to open")
     args = p.parse_args(argv)
     if not Path(args.bag_path).exists():
