@@ -12,6 +12,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
     install_requires=["setuptools"],
     zip_safe=False,
@@ -29,5 +30,6 @@ setup(
         "bag_to_memory = comper_agent.bag_tools:bag_to_memory_main",
         "export_dataset = comper_agent.bag_tools:export_dataset_main",
         "bag_repair = comper_agent.bag_tools:bag_repair_main",
+        "bringup = comper_agent.supervisor:main",
     ]},
 )
