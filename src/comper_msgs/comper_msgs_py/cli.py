@@ -12,6 +12,9 @@ parsed with rosidl_adapter), messages printed through the Python classes' rosidl
 
 The pure pieces (message to YAML, parameter nesting, rate statistics, QoS choice, interface text)
 take no ROS graph and are unit-tested; the verbs are tested against running nodes.
+
+Size: eight verbs share one graph helper, one argument convention and the message printer; one module
+keeps the stand-in a single place to read and to delete where ros2cli is installed.
 """
 from __future__ import annotations
 

@@ -7,6 +7,9 @@ that redefine only the fields whose defaults differ, each again with its source.
 
 Field names are flat (ROS parameters): QT fields carry a ``qt_`` prefix so that a node can declare
 an agent config and a QT config side by side.
+
+Size: one place defines every hyper-parameter of the agent package with its thesis value and source
+(the suite's rule), so the learners, QT and the profiles read their defaults from this one module.
 """
 from __future__ import annotations
 
