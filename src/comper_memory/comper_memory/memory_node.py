@@ -99,6 +99,22 @@ class _Refused(Exception):
     """A request the node itself refuses before it reaches the core."""
 
 
+class _Yield:
+    """Awaitable that suspends a service coroutine once: rclpy's Task leaves it pending and its
+    executor runs it again in its next round, after the entities that are ready by then."""
+
+    def __await__(self):
+        yield
+
+
+async def _next_turn(executor) -> None:
+    """Give the executor one round (other clients' calls) before the caller goes on. The wake
+    makes that round's wait return at once instead of blocking until some other event."""
+    if executor is not None:
+        executor.wake()
+    await _Yield()
+
+
 @dataclass(frozen=True)
 class MemoryNodeConfig:
     """memory_node's own parameters (the memory's are MemoryConfig, comper_memory.core)."""
@@ -117,6 +133,13 @@ class MemoryNodeConfig:
         1, "threads of numpy's OpenBLAS in this process (0 = the library's default, all cores). 1: the key "
         "projection of a store call took 0.7 ms with one thread and 13-27 ms with two on the busy 2-core machine "
         "(benchmarks/memory_atari_bench.py). Process-wide, also when embedded", minimum=0, maximum=1024)
+    store_chunk: int = param(
+        2048, "transitions a ~/store call applies per turn of the executor: a larger batch is validated whole "
+        "(a refused one stores nothing), then applied in chunks of this many, one WAL record each, and the "
+        "node serves other clients' calls between chunks. 0 = every store in one turn (atomic, one WAL "
+        "record; other clients wait for it). 2048 of 26-d keys take ~25 ms, so a 16,384-transition store "
+        "keeps no other call waiting ~100 ms (docs/memory-service.md, Large batches)", minimum=0,
+        maximum=2**31 - 1)
     executor_threads: int = param(
         1, "executor main() spins this node with: 1 = SingleThreadedExecutor (default: requests served one at a "
         "time, which the core's single lock does anyway; ~3x less CPU per call than rclpy's "
@@ -151,6 +174,7 @@ class MemoryNode(Node):
             self.faiss_threads, self.blas_threads = p.faiss_threads, p.blas_threads
             self.executor_threads, self.snapshot_service, self.snapshot_root = (
                 p.executor_threads, p.snapshot_service, p.snapshot_root)
+            self.store_chunk = p.store_chunk
             if self.faiss_threads > 0:
                 import faiss
                 faiss.omp_set_num_threads(self.faiss_threads)
@@ -249,7 +273,10 @@ class MemoryNode(Node):
         self._stats_pub.publish(msg)
 
     # --- services -----------------------------------------------------------------------------
-    def _on_store(self, request: Store.Request, response: Store.Response):
+    async def _on_store(self, request: Store.Request, response: Store.Response):
+        """A coroutine: rclpy's executors resume it after serving what else is ready, so a store of
+        more than ``store_chunk`` transitions lets other calls in between its chunks."""
+        op = None
         try:
             n = len(request.batch.rewards)
             if n == 0:
@@ -258,9 +285,18 @@ class MemoryNode(Node):
                 raise _Refused(f"store: batch of {n} exceeds max_store_batch ({self.config.max_store_batch})")
             t = batch_to_transitions(request.batch)
             with self._open():
-                result = self.memory.store(t)
+                op = self.memory.begin_store(t, self.store_chunk)   # validates all, applies chunk 1
+            while not op.done:
+                await _next_turn(self.executor)
+                with self._open():
+                    op.step()
+            result = op.result()
         except Exception as exc:
-            return self._refuse(response, "store", exc)
+            self._refuse(response, "store", exc)
+            if op is not None and 0 < op.applied < op.n:   # not bad input: a shutdown or an I/O failure
+                response.message += (f" ({op.applied} of the batch's {op.n} transitions, its first chunks, "
+                                     "were stored before this)")
+            return response
         response.success = True
         response.stored = n
         response.new_identities = int(result.new_identities)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+import weakref
 from typing import Callable
 
 import numpy as np
@@ -36,7 +37,7 @@ from .slots import SlotTable
 from .tables import ReducedTable, Remover, TransitionTable
 from .validation import index_key_size, schema_of, validate_store
 
-__all__ = ["CompactMemory", "MemoryInputError", "LeaseError", "StoreResult", "SampleResult",
+__all__ = ["CompactMemory", "ChunkedStore", "MemoryInputError", "LeaseError", "StoreResult", "SampleResult",
            "ReductionLease", "CommitResult", "newest_label"]
 
 
@@ -56,6 +57,9 @@ class CompactMemory:
         self._clock = clock
         self._lock = threading.RLock()
         self._durable: Durability | None = None
+        self._closed = False
+        # chunked stores not yet fully applied (a restore waits for them: ChunkedStore)
+        self._stores_in_progress: weakref.WeakSet = weakref.WeakSet()
         self._reset_state()
         c = self.config
         self.rate = RateLimiter(c.min_size_to_sample, c.samples_per_insert, c.rate_error_buffer)
@@ -98,22 +102,43 @@ class CompactMemory:
     # ================================================================== store
     def store(self, t: Transitions) -> StoreResult:
         """Store a batch (thesis Algorithm 6), atomically; raise MemoryInputError on bad input."""
+        return self.begin_store(t, chunk=0).result()
+
+    def begin_store(self, t: Transitions, chunk: int = 0) -> "ChunkedStore":
+        """Validate a whole batch, admit it to the rate limiter and apply its first ``chunk``
+        transitions (0: all of them), under one hold of the lock; :meth:`ChunkedStore.step`
+        applies the rest, one chunk per call, each under its own hold of the lock.
+
+        Bad input raises MemoryInputError (RateLimited when held back) before anything changes.
+        Each chunk is one logged store (its own WAL record and sequence number), so between
+        chunks other calls see the chunks applied so far, and a recovered memory replays exactly
+        what was applied, in the order it was. The result equals one store of the whole batch
+        (decisions are "as if sequential", ids allocated in order) unless a capacity evicts
+        between chunks or other stores interleave (docs/memory-service.md, "Large batches")."""
         with self._lock:
             self.tm.expire(self._clock)
             clean, keys = validate_store(t, self.config, self.schema, self.expected_key_size)
             self.rate.check_insert(len(clean), self.slots.n_live)
             if self.schema is None:
                 self._init_schema(schema_of(clean))
-            y = self.index.project(keys)
-            res = self.index.resolve(keys, y)
-            if self._durable is not None:
-                self._durable.append(self.wal_sequence + 1, st.WAL_STORE, t_to_arrays(clean))
-            self.wal_sequence += 1
-            out = self._apply_store(clean, y, res)
-            self.rate.inserted(len(clean))
-            if self._durable is not None:
-                self._durable.maybe_checkpoint()
-            return out
+            op = ChunkedStore(self, clean, keys, int(chunk) if chunk and chunk > 0 else len(clean))
+            op._step_locked()
+            self.rate.inserted(len(clean))   # admitted whole: later chunks are not checked again
+            if not op.done:
+                self._stores_in_progress.add(op)
+            return op
+
+    def _store_chunk(self, clean: Transitions, keys: np.ndarray) -> StoreResult:
+        """One logged store of a validated batch (the lock is held)."""
+        y = self.index.project(keys)
+        res = self.index.resolve(keys, y)
+        if self._durable is not None:
+            self._durable.append(self.wal_sequence + 1, st.WAL_STORE, t_to_arrays(clean))
+        self.wal_sequence += 1
+        out = self._apply_store(clean, y, res)
+        if self._durable is not None:
+            self._durable.maybe_checkpoint()
+        return out
 
     def _apply_store(self, t: Transitions, y: np.ndarray, res: ResolveResult) -> StoreResult:
         n = len(t)
@@ -379,6 +404,9 @@ class CompactMemory:
     def load_snapshot(self, path: str) -> None:
         """Replace the state by the snapshot at ``path``; refused (state untouched) if it is bad."""
         with self._lock:
+            if any(not op.done for op in self._stores_in_progress):
+                raise MemoryInputError("restore: a large store is being applied in chunks; restore once "
+                                       "it is answered (a restore would replace the state under it)")
             arrays, meta = st.read_snapshot(path)
             check_arrays(arrays)
             seq = self.wal_sequence
@@ -400,6 +428,7 @@ class CompactMemory:
 
     def close(self) -> None:
         with self._lock:
+            self._closed = True
             if self._durable is not None:
                 self._durable.close()
                 self._durable = None
@@ -409,3 +438,60 @@ class CompactMemory:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class ChunkedStore:
+    """A validated store being applied chunk by chunk (:meth:`CompactMemory.begin_store`).
+
+    ``step()`` applies the next chunk under the memory's lock and returns ``done``; between two
+    steps the lock is free, so other calls run. ``result()`` applies whatever is left and returns
+    the StoreResult of the whole batch. After the memory is closed a step raises
+    MemoryInputError (nothing more is applied or logged); ``applied`` says how many transitions
+    are in the memory then."""
+
+    def __init__(self, memory: CompactMemory, clean: Transitions, keys: np.ndarray, chunk: int):
+        self._memory = memory
+        self._t, self._keys, self.chunk = clean, keys, max(1, int(chunk))
+        self.n = len(clean)
+        self.applied = 0
+        self._parts: list[StoreResult] = []
+
+    @property
+    def done(self) -> bool:
+        return self.applied >= self.n
+
+    @property
+    def chunks(self) -> int:
+        return -(-self.n // self.chunk)
+
+    def step(self) -> bool:
+        """Apply the next chunk (no-op once done); True when the whole batch is applied."""
+        m = self._memory
+        with m._lock:
+            self._step_locked()
+            if self.done:
+                m._stores_in_progress.discard(self)
+        return self.done
+
+    def _step_locked(self) -> None:
+        m = self._memory
+        if self.done:
+            return
+        if m._closed and m.config.storage_dir:   # its log is closed: nothing more may be applied
+            raise MemoryInputError(f"store: the memory was closed after {self.applied} of {self.n} "
+                                   "transitions of this batch were stored")
+        m.tm.expire(m._clock)
+        a, b = self.applied, min(self.n, self.applied + self.chunk)
+        part = self._t if (a, b) == (0, self.n) else self._t.take(slice(a, b))
+        self._parts.append(m._store_chunk(part, self._keys[a:b]))
+        self.applied = b
+
+    def result(self) -> StoreResult:
+        """The whole batch's StoreResult (applies the chunks still left first)."""
+        while not self.done:
+            self.step()
+        p = self._parts
+        if len(p) == 1:
+            return p[0]
+        return StoreResult(np.concatenate([r.identity_ids for r in p]), sum(r.new_identities for r in p),
+                           sum(r.similarity_hits for r in p), sum(r.evicted for r in p), p[-1].wal_sequence)
