@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -37,6 +36,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from bench_args import stop_node
 
 from comper_msgs_py.arrays import Transitions
 
@@ -139,12 +140,7 @@ def run_ros(fill, timed, big, log_dir, tag, store_chunk=None):
     finally:
         client.close()
         other.close()
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+        stop_node(proc, timeout=20)
         log.close()
     return {"p50": pct(lat, 50), "p99": pct(lat, 99), "big_s": big_s, "ids": ids,
             "other_max_ms": max(waits) * 1e3 if waits else float("nan")}

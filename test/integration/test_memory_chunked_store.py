@@ -93,3 +93,21 @@ def test_sigkill_in_the_middle_of_a_large_store_leaves_a_state_the_node_starts_f
     np.testing.assert_array_equal(r.identity_ids, np.arange(N, dtype=np.uint64))
     proc2.kill(signal.SIGTERM)
     assert proc2.proc.returncode == 0, proc2.log()
+
+
+def test_a_store_sent_again_with_its_request_id_is_answered_once_and_not_applied_twice(launch, client_of):  # noqa: F811
+    from comper_msgs.srv import Store
+    from comper_msgs_py.convert import transitions_to_batch
+    proc, name = start(launch, "resend", "-p", "key_size:=26", "-p", f"store_chunk:={CHUNK}")
+    memory = client_of(name)
+    req = Store.Request(request_id=12345)
+    transitions_to_batch(make_batch(2, 0, 3 * CHUNK), req.batch)
+    first = memory._call(memory._store, req)     # as if its answer were lost: the same request again
+    again = memory._call(memory._store, req)
+    assert not first.repeated and again.repeated
+    assert list(again.identity_ids) == list(first.identity_ids) and again.stored == first.stored == 3 * CHUNK
+    assert memory.stats()["transitions_stored"] == 3 * CHUNK
+    # MemoryClient gives every store its own id: the same transitions stored again are applied again
+    r = memory.store(make_batch(2, 0, 3 * CHUNK))
+    assert r.new_identities == 0 and memory.stats()["transitions_stored"] == 6 * CHUNK
+    assert proc.alive()

@@ -146,3 +146,38 @@ def test_restore_waits_for_a_store_in_progress_and_a_closed_memory_applies_nothi
     with pytest.raises(MemoryInputError, match="300 of 1000"):
         op.step()
     assert op.applied == 300
+
+
+def test_a_resent_store_is_answered_from_the_first_and_never_applied_twice():
+    mem = CompactMemory(MemoryConfig(resend_window=150))
+    t = make(np.random.default_rng(1), 60)
+    first = mem.store(t, request_id=7)
+    again = mem.begin_store(t, request_id=7)            # its answer was lost; the client sends it again
+    assert again.repeated and again.done
+    np.testing.assert_array_equal(again.result().identity_ids, first.identity_ids)
+    assert mem.stats()["transitions_stored"] == 60
+
+    big = big_batch(n=1000, restores=0)                 # a re-send while the first is still being applied
+    op = mem.begin_store(big, 256, request_id=8)
+    resent = mem.begin_store(big, 256, request_id=8)
+    assert resent.repeated and not resent.done
+    while not resent.done:
+        resent.step()                                   # either one's steps apply the same chunks
+    assert op.done and mem.stats()["transitions_stored"] == 1060
+    np.testing.assert_array_equal(resent.result().identity_ids, op.result().identity_ids)
+
+    mem.store(make(np.random.default_rng(2), 60), request_id=9)   # 60 + 1000 + 60 > 150: 7 and 8 forgotten
+    assert not mem.begin_store(t, request_id=7).repeated           # applied again: joins its identities
+    assert mem.stats()["transitions_stored"] == 1180 and mem.stats()["identities"] == 1120
+    assert mem.begin_store(make(np.random.default_rng(2), 60), request_id=9).repeated
+    assert not mem.begin_store(t).repeated                          # no id: always applied
+
+
+def test_a_resent_store_is_not_held_back_by_the_rate_limiter():
+    mem = CompactMemory(MemoryConfig(samples_per_insert=1.0, rate_error_buffer=100.0, min_size_to_sample=10))
+    mem.store(make(np.random.default_rng(1), 10))
+    t = make(np.random.default_rng(2), 100)
+    mem.store(t, request_id=5)                          # the balance is now at its limit
+    with pytest.raises(RateLimited):
+        mem.store(make(np.random.default_rng(3), 10))
+    assert mem.begin_store(t, request_id=5).repeated    # the re-send is answered, not held back

@@ -36,7 +36,8 @@ multi-threaded executor (``executor_threads`` >= 2, or an embedding process's) m
 concurrently; the core serialises them with its own lock. ``main()`` uses a single-threaded
 executor by default (``executor_threads`` 1): with one core lock it serves the same requests in
 the same order at a third of rclpy's multi-threaded CPU cost per call; the request queue
-(``SERVICE_QOS``, depth 100) holds the other learners' calls meanwhile.
+(``SERVICE_QOS``, depth 1000) holds the other learners' calls meanwhile, and a store larger than
+``store_chunk`` is applied in chunks with the other calls served in between.
 All the memory logic lives in :mod:`comper_memory.core`.
 """
 from __future__ import annotations
@@ -62,6 +63,7 @@ from comper_msgs_py.blas import set_numpy_blas_threads
 from comper_msgs_py.convert import batch_to_transitions, numpy_to_seq, seq_to_numpy, transitions_to_batch
 from comper_msgs_py.params import ConfigError, param
 from comper_msgs_py.ros_main import serve_node
+from comper_msgs_py.qos import SERVICE_QOS
 from comper_msgs_py.ros_params import declare_config
 
 from .core import CompactMemory, MemoryConfig, MemoryInputError, RateLimited, SnapshotError
@@ -72,10 +74,8 @@ __all__ = ["MemoryNode", "MemoryNodeConfig", "main", "STATS_QOS", "SERVICE_QOS",
 STATS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                        reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 
-# Services: reliable like the default, but a deeper request queue (default keep_last 10), so a
-# burst from many learners waits while a long call (reduce, snapshot) runs instead of being dropped.
-SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
-                         reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+# Services: the suite's one service profile (comper_msgs_py.qos.SERVICE_QOS, the clients use it too):
+# reliable, keep-last 1000, so neither a burst of requests nor of answers to other clients drops one.
 
 SOURCES = {Sample.Request.SOURCE_RTM: "rtm", Sample.Request.SOURCE_TM: "tm"}
 
@@ -134,11 +134,12 @@ class MemoryNodeConfig:
         "projection of a store call took 0.7 ms with one thread and 13-27 ms with two on the busy 2-core machine "
         "(benchmarks/memory_atari_bench.py). Process-wide, also when embedded", minimum=0, maximum=1024)
     store_chunk: int = param(
-        2048, "transitions a ~/store call applies per turn of the executor: a larger batch is validated whole "
+        1024, "transitions a ~/store call applies per turn of the executor: a larger batch is validated whole "
         "(a refused one stores nothing), then applied in chunks of this many, one WAL record each, and the "
         "node serves other clients' calls between chunks. 0 = every store in one turn (atomic, one WAL "
-        "record; other clients wait for it). 2048 of 26-d keys take ~25 ms, so a 16,384-transition store "
-        "keeps no other call waiting ~100 ms (docs/memory-service.md, Large batches)", minimum=0,
+        "record; other clients wait for it). A chunk of 1024 26-d keys took 5-35 ms on the busy 2-core machine; "
+        "with 2048 another client still waited 94-319 ms during a 16,384-transition store there (docs/"
+        "memory-service.md, Large batches)", minimum=0,
         maximum=2**31 - 1)
     executor_threads: int = param(
         1, "executor main() spins this node with: 1 = SingleThreadedExecutor (default: requests served one at a "
@@ -285,7 +286,8 @@ class MemoryNode(Node):
                 raise _Refused(f"store: batch of {n} exceeds max_store_batch ({self.config.max_store_batch})")
             t = batch_to_transitions(request.batch)
             with self._open():
-                op = self.memory.begin_store(t, self.store_chunk)   # validates all, applies chunk 1
+                # validates all and applies chunk 1; a re-send of a store in progress or remembered gets that one
+                op = self.memory.begin_store(t, self.store_chunk, request_id=int(request.request_id))
             while not op.done:
                 await _next_turn(self.executor)
                 with self._open():
@@ -302,6 +304,7 @@ class MemoryNode(Node):
         response.new_identities = int(result.new_identities)
         response.identity_ids = numpy_to_seq(result.identity_ids, np.uint64)
         response.wal_sequence = int(result.wal_sequence) if self.config.storage_dir else 0
+        response.repeated = bool(op.repeated)
         return response
 
     def _on_sample(self, request: Sample.Request, response: Sample.Response):

@@ -19,6 +19,7 @@ import logging
 import threading
 import time
 import weakref
+from collections import OrderedDict
 from typing import Callable
 
 import numpy as np
@@ -60,6 +61,10 @@ class CompactMemory:
         self._closed = False
         # chunked stores not yet fully applied (a restore waits for them: ChunkedStore)
         self._stores_in_progress: weakref.WeakSet = weakref.WeakSet()
+        # answers of stores with a request id (re-sent stores): id -> finished ChunkedStore, oldest first
+        self._answers: OrderedDict[int, ChunkedStore] = OrderedDict()
+        self._answers_size = 0
+        self._pending_ids: dict[int, ChunkedStore] = {}
         self._reset_state()
         c = self.config
         self.rate = RateLimiter(c.min_size_to_sample, c.samples_per_insert, c.rate_error_buffer)
@@ -100,11 +105,12 @@ class CompactMemory:
         return self.slots.slots_sorted
 
     # ================================================================== store
-    def store(self, t: Transitions) -> StoreResult:
-        """Store a batch (thesis Algorithm 6), atomically; raise MemoryInputError on bad input."""
-        return self.begin_store(t, chunk=0).result()
+    def store(self, t: Transitions, request_id: int = 0) -> StoreResult:
+        """Store a batch (thesis Algorithm 6), atomically; raise MemoryInputError on bad input.
+        request_id (0 = none): see :meth:`begin_store`."""
+        return self.begin_store(t, chunk=0, request_id=request_id).result()
 
-    def begin_store(self, t: Transitions, chunk: int = 0) -> "ChunkedStore":
+    def begin_store(self, t: Transitions, chunk: int = 0, request_id: int = 0) -> "ChunkedStore":
         """Validate a whole batch, admit it to the rate limiter and apply its first ``chunk``
         transitions (0: all of them), under one hold of the lock; :meth:`ChunkedStore.step`
         applies the rest, one chunk per call, each under its own hold of the lock.
@@ -114,19 +120,45 @@ class CompactMemory:
         chunks other calls see the chunks applied so far, and a recovered memory replays exactly
         what was applied, in the order it was. The result equals one store of the whole batch
         (decisions are "as if sequential", ids allocated in order) unless a capacity evicts
-        between chunks or other stores interleave (docs/memory-service.md, "Large batches")."""
+        between chunks or other stores interleave (docs/memory-service.md, "Large batches").
+
+        request_id > 0: the client's id of this batch. A store with the id of one still in progress
+        or remembered (``resend_window``) is not applied again: it returns that store (``repeated``
+        True; step it like any other), before validation and the rate limiter."""
         with self._lock:
+            rid = int(request_id)
+            if rid > 0 and self.config.resend_window > 0:
+                same = self._pending_ids.get(rid) or self._answers.get(rid)
+                if same is not None:
+                    return same.repeat()
             self.tm.expire(self._clock)
             clean, keys = validate_store(t, self.config, self.schema, self.expected_key_size)
             self.rate.check_insert(len(clean), self.slots.n_live)
             if self.schema is None:
                 self._init_schema(schema_of(clean))
-            op = ChunkedStore(self, clean, keys, int(chunk) if chunk and chunk > 0 else len(clean))
+            op = ChunkedStore(self, clean, keys, int(chunk) if chunk and chunk > 0 else len(clean), rid)
             op._step_locked()
             self.rate.inserted(len(clean))   # admitted whole: later chunks are not checked again
-            if not op.done:
+            if op.done:
+                self._finished(op)
+            else:
                 self._stores_in_progress.add(op)
+                if rid > 0 and self.config.resend_window > 0:
+                    self._pending_ids[rid] = op
             return op
+
+    def _finished(self, op: "ChunkedStore") -> None:
+        """A store is fully applied (the lock is held): remember its answer by its request id."""
+        self._stores_in_progress.discard(op)
+        rid = op.request_id
+        if rid <= 0 or self.config.resend_window <= 0:
+            return
+        self._pending_ids.pop(rid, None)
+        self._answers[rid] = op
+        self._answers_size += op.n
+        while self._answers_size > self.config.resend_window and len(self._answers) > 1:
+            _, old = self._answers.popitem(last=False)
+            self._answers_size -= old.n
 
     def _store_chunk(self, clean: Transitions, keys: np.ndarray) -> StoreResult:
         """One logged store of a validated batch (the lock is held)."""
@@ -411,6 +443,8 @@ class CompactMemory:
             check_arrays(arrays)
             seq = self.wal_sequence
             self._restore(arrays, meta)
+            self._answers.clear()   # they describe the replaced state
+            self._answers_size = 0
             self.rate.recovered(self.slots.n_live)
             if self._durable is not None:
                 # the restore is an operation at the current log position: the new snapshot keeps
@@ -449,12 +483,21 @@ class ChunkedStore:
     MemoryInputError (nothing more is applied or logged); ``applied`` says how many transitions
     are in the memory then."""
 
-    def __init__(self, memory: CompactMemory, clean: Transitions, keys: np.ndarray, chunk: int):
+    def __init__(self, memory: CompactMemory, clean: Transitions, keys: np.ndarray, chunk: int,
+                 request_id: int = 0):
         self._memory = memory
         self._t, self._keys, self.chunk = clean, keys, max(1, int(chunk))
         self.n = len(clean)
+        self.request_id = int(request_id)
         self.applied = 0
         self._parts: list[StoreResult] = []
+
+    #: True on what a re-sent store gets (:meth:`repeat`): this store, not applied again
+    repeated = False
+
+    def repeat(self) -> "ChunkedStore":
+        """This store as a re-send of it sees it: the same progress, steps and result, ``repeated``."""
+        return _Repeated(self)
 
     @property
     def done(self) -> bool:
@@ -466,11 +509,14 @@ class ChunkedStore:
 
     def step(self) -> bool:
         """Apply the next chunk (no-op once done); True when the whole batch is applied."""
+        if self.done:
+            return True
         m = self._memory
         with m._lock:
-            self._step_locked()
-            if self.done:
-                m._stores_in_progress.discard(self)
+            if not self.done:
+                self._step_locked()
+                if self.done:
+                    m._finished(self)
         return self.done
 
     def _step_locked(self) -> None:
@@ -495,3 +541,15 @@ class ChunkedStore:
             return p[0]
         return StoreResult(np.concatenate([r.identity_ids for r in p]), sum(r.new_identities for r in p),
                            sum(r.similarity_hits for r in p), sum(r.evicted for r in p), p[-1].wal_sequence)
+
+
+class _Repeated:
+    """A re-sent store's view of the original :class:`ChunkedStore` (every attribute but ``repeated``)."""
+
+    repeated = True
+
+    def __init__(self, op: ChunkedStore):
+        self._op = op
+
+    def __getattr__(self, name):
+        return getattr(self._op, name)
