@@ -194,8 +194,9 @@ class MemoryClient(ServiceClient):
 
     # --- the memory's operations --------------------------------------------------------------
     def store(self, transitions: Transitions, *, timeout: float | None = None) -> StoreReply:
-        """Store N transitions (value_labels required, one per transition), atomically; waits while
-        the node's rate limiter holds it back (``rate_limit_timeout``)."""
+        """Store N transitions (value_labels required, one per transition); a refused batch stores nothing.
+        Waits while the node's rate limiter holds it back (``rate_limit_timeout``); sent again with the same
+        request id when its answer is lost (``resend_s``), so it is applied once."""
         req = Store.Request(request_id=_request_id())
         transitions_to_batch(transitions, req.batch)
         r = self._call_limited(self._store, req, timeout)
