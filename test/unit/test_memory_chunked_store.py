@@ -164,6 +164,7 @@ def test_a_resent_store_is_answered_from_the_first_and_never_applied_twice():
     while not resent.done:
         resent.step()                                   # either one's steps apply the same chunks
     assert op.done and mem.stats()["transitions_stored"] == 1060
+    assert op._t is None and op._keys is None          # what is remembered is the answer, not the batch
     np.testing.assert_array_equal(resent.result().identity_ids, op.result().identity_ids)
 
     mem.store(make(np.random.default_rng(2), 60), request_id=9)   # 60 + 1000 + 60 > 150: 7 and 8 forgotten

@@ -531,6 +531,8 @@ class ChunkedStore:
         part = self._t if (a, b) == (0, self.n) else self._t.take(slice(a, b))
         self._parts.append(m._store_chunk(part, self._keys[a:b]))
         self.applied = b
+        if self.done:   # a remembered answer keeps its ids only, not the batch (resend_window: 8 bytes each)
+            self._t = self._keys = None
 
     def result(self) -> StoreResult:
         """The whole batch's StoreResult (applies the chunks still left first)."""
