@@ -15,17 +15,19 @@ first, so the timed calls are centred on it). Scenarios:
   (1e8 by default; larger values are refused), stored first and alive for the whole run.
 
 Then one store of 16,384 new transitions (26-d) into each filled memory. The ROS rows start
-``ros2 run comper_memory memory_node`` (default parameters) per scenario and time the same calls
-through a standalone MemoryClient; during the big store a second client thread calls
-``~/get_stats`` in a loop and the longest wait is printed. Ratios are against the stationary row
-of the same run.
+``ros2 run comper_memory memory_node`` (default parameters but ``store_chunk``) per scenario and
+time the same calls through a standalone MemoryClient; during the big store a second client thread
+calls ``~/get_stats`` in a loop and the longest wait is printed. ``--store-chunks 0,2048`` gives one
+ROS row per value (0: the store in one turn of the executor, as before chunking). Ratios are against
+the stationary row of the same path in the same run.
+
+    python benchmarks/memory_hardening_bench.py --scenarios stationary --repeat 3 --store-chunks 0,2048
 """
 from __future__ import annotations
 
 import argparse
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -34,6 +36,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from bench_args import stop_node
 
 from comper_msgs_py.arrays import Transitions
 
@@ -99,7 +103,7 @@ def run_core(fill, timed, big):
     return {"p50": pct(lat, 50), "p99": pct(lat, 99), "big_s": big_s, "ids": mem.stats()["identities"]}
 
 
-def run_ros(fill, timed, big, log_dir, tag):
+def run_ros(fill, timed, big, log_dir, tag, store_chunk=None):
     from comper_memory.client import MemoryClient
     ros2 = shutil.which("ros2")
     if ros2 is None:
@@ -107,7 +111,8 @@ def run_ros(fill, timed, big, log_dir, tag):
     name = f"hardening_bench_{os.getpid()}_{tag}"
     log = open(Path(log_dir) / f"{name}.log", "wb")
     proc = subprocess.Popen([ros2, "run", "comper_memory", "memory_node", "--ros-args", "-r", f"__node:={name}",
-                             "-p", "stats_period_s:=0.0", "--log-level", "warn"],
+                             "-p", "stats_period_s:=0.0", "--log-level", "warn"]
+                            + ([] if store_chunk is None else ["-p", f"store_chunk:={store_chunk}"]),
                             stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     client = MemoryClient.standalone(name, timeout=120.0)
     other = MemoryClient.standalone(name, timeout=120.0)
@@ -135,12 +140,7 @@ def run_ros(fill, timed, big, log_dir, tag):
     finally:
         client.close()
         other.close()
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+        stop_node(proc, timeout=20)
         log.close()
     return {"p50": pct(lat, 50), "p99": pct(lat, 99), "big_s": big_s, "ids": ids,
             "other_max_ms": max(waits) * 1e3 if waits else float("nan")}
@@ -152,6 +152,9 @@ def main(argv=None) -> int:
     ap.add_argument("--calls", type=int, default=1000, help="timed store calls of 64 per scenario")
     ap.add_argument("--new", type=int, default=16, help="new transitions per timed call (the rest re-stores)")
     ap.add_argument("--no-ros", action="store_true", help="in-process core only")
+    ap.add_argument("--store-chunks", default="",
+                    help="comma-separated store_chunk values, one ROS row each (default: the node's default)")
+    ap.add_argument("--scenarios", default="stationary,drifting,poisoned", help="comma-separated subset")
     ap.add_argument("--repeat", type=int, default=3,
                     help="rounds over all scenarios (interleaved); the table gives the median of each figure")
     args = ap.parse_args(argv)
@@ -164,29 +167,32 @@ def main(argv=None) -> int:
         faiss.omp_set_num_threads(1)
     except Exception:  # noqa: BLE001 - speed setting only
         pass
-    paths = [("core", None)] + ([] if args.no_ros else [("ros", "ros")])
+    chunks = [int(c) for c in args.store_chunks.split(",") if c.strip()] or [None]
+    paths = [("core", None)] + ([] if args.no_ros else
+                                [("ros" if c is None else f"ros chunk {c}", c) for c in chunks])
+    scenarios = [x for x in ("stationary", "drifting", "poisoned") if x in args.scenarios.split(",")]
     runs = {}
     log_dir = tempfile.mkdtemp(prefix="hardening_bench_")
     loads = {s: workload(s, args.identities, args.calls, bound, args.new)
-             for s in ("stationary", "drifting", "poisoned")}
+             for s in scenarios}
     for rnd in range(args.repeat):
         for scenario, (fill, timed, big) in loads.items():
-            for path, _ in paths:
+            for path, chunk in paths:
                 r = run_core(fill, timed, big) if path == "core" else \
-                    run_ros(fill, timed, big, log_dir, f"{scenario}{rnd}")
+                    run_ros(fill, timed, big, log_dir, f"{scenario}{rnd}", chunk)
                 runs.setdefault((path, scenario), []).append(r)
-                print(f"[{path:4s}] round {rnd} {scenario:10s} identities after {r['ids']:6d}  store(64) p50 "
+                print(f"[{path}] round {rnd} {scenario:10s} identities after {r['ids']:6d}  store(64) p50 "
                       f"{r['p50']:7.2f} ms  p99 {r['p99']:7.2f} ms  store(16384) {r['big_s']:6.3f} s"
                       + (f"  other client's longest wait {r['other_max_ms']:.0f} ms" if "other_max_ms" in r else ""),
                       flush=True)
     rows = {k: {f: float(np.median([r[f] for r in v])) for f in v[0]} for k, v in runs.items()}
     print()
-    print("| path | keys | store(64) p50 ms | store(64) p99 ms | p99 / stationary | 16,384-transition store s |"
+    print(f"| path | keys | store(64) p50 ms | store(64) p99 ms | p99 / {scenarios[0]} | 16,384-transition store s |"
           + (" longest get_stats wait during it, ms |" if not args.no_ros else ""))
     print("|---|---|---|---|---|---|" + ("---|" if not args.no_ros else ""))
     for path, _ in paths:
-        base = rows[(path, "stationary")]["p99"]
-        for scenario in ("stationary", "drifting", "poisoned"):
+        base = rows[(path, scenarios[0])]["p99"]
+        for scenario in scenarios:
             r = rows[(path, scenario)]
             extra = f" {r['other_max_ms']:.0f} |" if "other_max_ms" in r else (" - |" if not args.no_ros else "")
             print(f"| {path} | {scenario} | {r['p50']:.2f} | {r['p99']:.2f} | {r['p99'] / base:.2f} | "

@@ -38,6 +38,7 @@ as predictions) and the QT trainer (QT's predictions) serve.
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 
@@ -57,6 +58,11 @@ __all__ = ["MemoryClient", "ReductionClient", "MemoryServiceError", "RateLimitTi
 SOURCES = {"rtm": Sample.Request.SOURCE_RTM, "tm": Sample.Request.SOURCE_TM}
 #: the MemoryStats fields, in the message's order (the message definition is their one source)
 STATS_FIELDS = tuple(k for k in MemoryStats.get_fields_and_field_types() if k != "header")
+
+
+def _request_id() -> int:
+    """A store's request id: random 63 bits (never 0), unique across clients and processes in practice."""
+    return int.from_bytes(os.urandom(8), "little") >> 1 or 1
 
 
 def stats_to_dict(msg: MemoryStats) -> dict:
@@ -121,14 +127,19 @@ class MemoryClient(ServiceClient):
     rate_limit_timeout: how long store and sample keep retrying a call that the node's rate limiter
     holds back (``rate_limited`` in the answer) before they raise :class:`RateLimitTimeout`
     (None = ``timeout``); retries back off from 1 ms to 50 ms.
+    resend_s: a store or sample whose answer has not come after this many seconds is sent again (0 = never;
+    then one lost answer costs the whole ``timeout``). Safe: every store carries a fresh request id, and the
+    node answers a re-sent one with the first one's answer without applying it twice (``resend_window``);
+    a re-sent sample is just another draw. ``resent`` counts them.
     """
 
     REFUSED = MemoryServiceError
     NODE_NAME = "memory_client"
 
     def __init__(self, node, memory_node: str = "memory_node", *, timeout: float = 30.0,
-                 rate_limit_timeout: float | None = None, callback_group=None):
+                 rate_limit_timeout: float | None = None, resend_s: float = 2.0, callback_group=None):
         super().__init__(node, memory_node, timeout=timeout, callback_group=callback_group)
+        self.resend_s = float(resend_s)
         self.memory_node = self.server
         self.rate_limit_timeout = timeout if rate_limit_timeout is None else float(rate_limit_timeout)
         self.rate_limited_waits = 0     # calls of this client that had to wait for the rate limiter
@@ -143,20 +154,21 @@ class MemoryClient(ServiceClient):
 
     @classmethod
     def standalone(cls, memory_node: str = "memory_node", context=None, *, node_name: str | None = None,
-                   timeout: float = 30.0, rate_limit_timeout: float | None = None) -> "MemoryClient":
+                   timeout: float = 30.0, rate_limit_timeout: float | None = None,
+                   resend_s: float = 2.0) -> "MemoryClient":
         """A client with its own node and a background executor thread (``close()`` or ``with``
         tears them down). context=None: a private rclpy context is created and shut down by
         ``close()``; a given context must already be initialised and is left running."""
         return super().standalone(memory_node, context, node_name=node_name, timeout=timeout,
-                                  rate_limit_timeout=rate_limit_timeout)
+                                  rate_limit_timeout=rate_limit_timeout, resend_s=resend_s)
 
     def store_client(self):
         """The rclpy client of ``<memory_node>/store`` (for :func:`wait_for_services`)."""
         return self._store
 
     def _call_limited(self, client, request, timeout: float | None):
-        """_call, retried while the node's rate limiter holds the call back (module text)."""
-        r = self._call(client, request, timeout, check=False)
+        """_call (re-sent when its answer is lost), retried while the node's rate limiter holds it back."""
+        r = self._call(client, request, timeout, check=False, resend_s=self.resend_s)
         if r.success or not r.rate_limited:
             return self._call_checked(client, r)
         t0 = time.monotonic()
@@ -169,7 +181,7 @@ class MemoryClient(ServiceClient):
                                            f"{self.rate_limit_timeout:g} s: {r.message}")
                 time.sleep(pause)
                 pause = min(2 * pause, 0.05)
-                r = self._call(client, request, timeout, check=False)
+                r = self._call(client, request, timeout, check=False, resend_s=self.resend_s)
                 if r.success or not r.rate_limited:
                     return self._call_checked(client, r)
         finally:
@@ -182,9 +194,10 @@ class MemoryClient(ServiceClient):
 
     # --- the memory's operations --------------------------------------------------------------
     def store(self, transitions: Transitions, *, timeout: float | None = None) -> StoreReply:
-        """Store N transitions (value_labels required, one per transition), atomically; waits while
-        the node's rate limiter holds it back (``rate_limit_timeout``)."""
-        req = Store.Request()
+        """Store N transitions (value_labels required, one per transition); a refused batch stores nothing.
+        Waits while the node's rate limiter holds it back (``rate_limit_timeout``); sent again with the same
+        request id when its answer is lost (``resend_s``), so it is applied once."""
+        req = Store.Request(request_id=_request_id())
         transitions_to_batch(transitions, req.batch)
         r = self._call_limited(self._store, req, timeout)
         return StoreReply(seq_to_numpy(r.identity_ids, np.uint64), int(r.new_identities), int(r.stored),

@@ -22,7 +22,9 @@ import os
 import threading
 import time
 
-__all__ = ["ServiceError", "ServiceUnavailable", "ServiceTimeout", "ServiceRefused", "PendingCall", "call",
+from .qos import SERVICE_QOS
+
+__all__ = ["ServiceError", "ServiceUnavailable", "ServiceTimeout", "NoAnswer", "ServiceRefused", "PendingCall", "call",
            "wait_for_services", "ServiceClient"]
 
 
@@ -36,6 +38,10 @@ class ServiceUnavailable(ServiceError):
 
 class ServiceTimeout(ServiceError, TimeoutError):
     """No answer within the timeout, or the call was cancelled (shutting down)."""
+
+
+class NoAnswer(ServiceTimeout):
+    """The answer did not come within the timeout (the server may be slow, gone, or its answer lost)."""
 
 
 class ServiceRefused(ServiceError):
@@ -78,7 +84,7 @@ class PendingCall:
         if not self._done.wait(timeout):
             self.client.remove_pending_request(future)
             future.cancel()
-            raise ServiceTimeout(f"{name}: no answer within {timeout:g} s (is the node still running?)")
+            raise NoAnswer(f"{name}: no answer within {timeout:g} s (is the node still running?)")
         if future.cancelled():
             raise ServiceTimeout(f"{name}: the call was cancelled (shutting down?)")
         exc = future.exception()
@@ -140,10 +146,12 @@ class ServiceClient:
         self.timeout = float(timeout)
         self._group = callback_group
         self._clients: list = []
+        self.resent = 0      # requests sent again because their answer did not come (_call's resend_s)
         self._owned = None   # (own context or None, executor, thread) of a standalone client
 
     def _make(self, srv_type, name: str):
-        c = self.node.create_client(srv_type, f"{self.server}/{name}", callback_group=self._group)
+        c = self.node.create_client(srv_type, f"{self.server}/{name}", qos_profile=SERVICE_QOS,
+                                    callback_group=self._group)
         self._clients.append(c)
         return c
 
@@ -222,9 +230,26 @@ class ServiceClient:
         self._check_spun()
         return PendingCall(client, request, refused=self.REFUSED)
 
-    def _call(self, client, request, timeout: float | None = None, *, check: bool = True):
-        return self._send(client, request).result(self.timeout if timeout is None else float(timeout),
-                                                  check=check)
+    def _call(self, client, request, timeout: float | None = None, *, check: bool = True,
+              resend_s: float = 0.0):
+        """One call; resend_s > 0: a request without an answer after resend_s seconds is sent again (only for
+        requests whose repetition is harmless: reads, or stores the server recognises by a request id), until
+        one is answered or ``timeout`` is over. ``self.resent`` counts the repetitions."""
+        timeout = self.timeout if timeout is None else float(timeout)
+        if not resend_s or resend_s <= 0 or resend_s >= timeout:
+            return self._send(client, request).result(timeout, check=check)
+        deadline = time.monotonic() + timeout
+        sent = 0
+        while True:
+            left = deadline - time.monotonic()
+            try:
+                sent += 1
+                return self._send(client, request).result(max(0.0, min(resend_s, left)), check=check)
+            except NoAnswer:
+                if deadline - time.monotonic() <= 0.0:
+                    raise NoAnswer(f"{client.srv_name}: no answer within {timeout:g} s (sent {sent} times, "
+                                   f"every {resend_s:g} s; is the node still running?)") from None
+                self.resent += 1
 
 
 def _spin(executor) -> None:

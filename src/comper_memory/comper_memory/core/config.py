@@ -71,6 +71,11 @@ class MemoryConfig:
         "sqrt(delta) = 0.01 for 26-d keys), so one huge value cannot coarsen the index for every "
         "later store. Leaves room for step counters in observations (1e8 steps)",
         deviation="not in the thesis (inputs are unbounded there)", minimum=0.0, maximum=3e38)
+    resend_window: int = param(
+        1_000_000, "transitions of store answers the memory remembers by the client's request id (oldest "
+        "forgotten first; 8 bytes each): a store re-sent with the id of a remembered one is answered with that "
+        "answer and not applied again. 0 = none remembered (every store is applied). Not kept across restarts",
+        deviation="not in the thesis (one process there)", minimum=0)
     snapshot_every: int = param(
         10_000, "write a snapshot and rotate the WAL every this many logged operations (0: never)",
         minimum=0)

@@ -18,6 +18,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
+import weakref
+from collections import OrderedDict
 from typing import Callable
 
 import numpy as np
@@ -36,7 +38,7 @@ from .slots import SlotTable
 from .tables import ReducedTable, Remover, TransitionTable
 from .validation import index_key_size, schema_of, validate_store
 
-__all__ = ["CompactMemory", "MemoryInputError", "LeaseError", "StoreResult", "SampleResult",
+__all__ = ["CompactMemory", "ChunkedStore", "MemoryInputError", "LeaseError", "StoreResult", "SampleResult",
            "ReductionLease", "CommitResult", "newest_label"]
 
 
@@ -56,6 +58,13 @@ class CompactMemory:
         self._clock = clock
         self._lock = threading.RLock()
         self._durable: Durability | None = None
+        self._closed = False
+        # chunked stores not yet fully applied (a restore waits for them: ChunkedStore)
+        self._stores_in_progress: weakref.WeakSet = weakref.WeakSet()
+        # answers of stores with a request id (re-sent stores): id -> finished ChunkedStore, oldest first
+        self._answers: OrderedDict[int, ChunkedStore] = OrderedDict()
+        self._answers_size = 0
+        self._pending_ids: dict[int, ChunkedStore] = {}
         self._reset_state()
         c = self.config
         self.rate = RateLimiter(c.min_size_to_sample, c.samples_per_insert, c.rate_error_buffer)
@@ -96,24 +105,72 @@ class CompactMemory:
         return self.slots.slots_sorted
 
     # ================================================================== store
-    def store(self, t: Transitions) -> StoreResult:
-        """Store a batch (thesis Algorithm 6), atomically; raise MemoryInputError on bad input."""
+    def store(self, t: Transitions, request_id: int = 0) -> StoreResult:
+        """Store a batch (thesis Algorithm 6), atomically; raise MemoryInputError on bad input.
+        request_id (0 = none): see :meth:`begin_store`."""
+        return self.begin_store(t, chunk=0, request_id=request_id).result()
+
+    def begin_store(self, t: Transitions, chunk: int = 0, request_id: int = 0) -> "ChunkedStore":
+        """Validate a whole batch, admit it to the rate limiter and apply its first ``chunk``
+        transitions (0: all of them), under one hold of the lock; :meth:`ChunkedStore.step`
+        applies the rest, one chunk per call, each under its own hold of the lock.
+
+        Bad input raises MemoryInputError (RateLimited when held back) before anything changes.
+        Each chunk is one logged store (its own WAL record and sequence number), so between
+        chunks other calls see the chunks applied so far, and a recovered memory replays exactly
+        what was applied, in the order it was. The result equals one store of the whole batch
+        (decisions are "as if sequential", ids allocated in order) unless a capacity evicts
+        between chunks or other stores interleave (docs/memory-service.md, "Large batches").
+
+        request_id > 0: the client's id of this batch. A store with the id of one still in progress
+        or remembered (``resend_window``) is not applied again: it returns that store (``repeated``
+        True; step it like any other), before validation and the rate limiter."""
         with self._lock:
+            rid = int(request_id)
+            if rid > 0 and self.config.resend_window > 0:
+                same = self._pending_ids.get(rid) or self._answers.get(rid)
+                if same is not None:
+                    return same.repeat()
             self.tm.expire(self._clock)
             clean, keys = validate_store(t, self.config, self.schema, self.expected_key_size)
             self.rate.check_insert(len(clean), self.slots.n_live)
             if self.schema is None:
                 self._init_schema(schema_of(clean))
-            y = self.index.project(keys)
-            res = self.index.resolve(keys, y)
-            if self._durable is not None:
-                self._durable.append(self.wal_sequence + 1, st.WAL_STORE, t_to_arrays(clean))
-            self.wal_sequence += 1
-            out = self._apply_store(clean, y, res)
-            self.rate.inserted(len(clean))
-            if self._durable is not None:
-                self._durable.maybe_checkpoint()
-            return out
+            op = ChunkedStore(self, clean, keys, int(chunk) if chunk and chunk > 0 else len(clean), rid)
+            op._step_locked()
+            self.rate.inserted(len(clean))   # admitted whole: later chunks are not checked again
+            if op.done:
+                self._finished(op)
+            else:
+                self._stores_in_progress.add(op)
+                if rid > 0 and self.config.resend_window > 0:
+                    self._pending_ids[rid] = op
+            return op
+
+    def _finished(self, op: "ChunkedStore") -> None:
+        """A store is fully applied (the lock is held): remember its answer by its request id."""
+        self._stores_in_progress.discard(op)
+        rid = op.request_id
+        if rid <= 0 or self.config.resend_window <= 0:
+            return
+        self._pending_ids.pop(rid, None)
+        self._answers[rid] = op
+        self._answers_size += op.n
+        while self._answers_size > self.config.resend_window and len(self._answers) > 1:
+            _, old = self._answers.popitem(last=False)
+            self._answers_size -= old.n
+
+    def _store_chunk(self, clean: Transitions, keys: np.ndarray) -> StoreResult:
+        """One logged store of a validated batch (the lock is held)."""
+        y = self.index.project(keys)
+        res = self.index.resolve(keys, y)
+        if self._durable is not None:
+            self._durable.append(self.wal_sequence + 1, st.WAL_STORE, t_to_arrays(clean))
+        self.wal_sequence += 1
+        out = self._apply_store(clean, y, res)
+        if self._durable is not None:
+            self._durable.maybe_checkpoint()
+        return out
 
     def _apply_store(self, t: Transitions, y: np.ndarray, res: ResolveResult) -> StoreResult:
         n = len(t)
@@ -379,10 +436,15 @@ class CompactMemory:
     def load_snapshot(self, path: str) -> None:
         """Replace the state by the snapshot at ``path``; refused (state untouched) if it is bad."""
         with self._lock:
+            if any(not op.done for op in self._stores_in_progress):
+                raise MemoryInputError("restore: a large store is being applied in chunks; restore once "
+                                       "it is answered (a restore would replace the state under it)")
             arrays, meta = st.read_snapshot(path)
             check_arrays(arrays)
             seq = self.wal_sequence
             self._restore(arrays, meta)
+            self._answers.clear()   # they describe the replaced state
+            self._answers_size = 0
             self.rate.recovered(self.slots.n_live)
             if self._durable is not None:
                 # the restore is an operation at the current log position: the new snapshot keeps
@@ -400,6 +462,7 @@ class CompactMemory:
 
     def close(self) -> None:
         with self._lock:
+            self._closed = True
             if self._durable is not None:
                 self._durable.close()
                 self._durable = None
@@ -409,3 +472,86 @@ class CompactMemory:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class ChunkedStore:
+    """A validated store being applied chunk by chunk (:meth:`CompactMemory.begin_store`).
+
+    ``step()`` applies the next chunk under the memory's lock and returns ``done``; between two
+    steps the lock is free, so other calls run. ``result()`` applies whatever is left and returns
+    the StoreResult of the whole batch. After the memory is closed a step raises
+    MemoryInputError (nothing more is applied or logged); ``applied`` says how many transitions
+    are in the memory then."""
+
+    def __init__(self, memory: CompactMemory, clean: Transitions, keys: np.ndarray, chunk: int,
+                 request_id: int = 0):
+        self._memory = memory
+        self._t, self._keys, self.chunk = clean, keys, max(1, int(chunk))
+        self.n = len(clean)
+        self.request_id = int(request_id)
+        self.applied = 0
+        self._parts: list[StoreResult] = []
+
+    #: True on what a re-sent store gets (:meth:`repeat`): this store, not applied again
+    repeated = False
+
+    def repeat(self) -> "ChunkedStore":
+        """This store as a re-send of it sees it: the same progress, steps and result, ``repeated``."""
+        return _Repeated(self)
+
+    @property
+    def done(self) -> bool:
+        return self.applied >= self.n
+
+    @property
+    def chunks(self) -> int:
+        return -(-self.n // self.chunk)
+
+    def step(self) -> bool:
+        """Apply the next chunk (no-op once done); True when the whole batch is applied."""
+        if self.done:
+            return True
+        m = self._memory
+        with m._lock:
+            if not self.done:
+                self._step_locked()
+                if self.done:
+                    m._finished(self)
+        return self.done
+
+    def _step_locked(self) -> None:
+        m = self._memory
+        if self.done:
+            return
+        if m._closed and m.config.storage_dir:   # its log is closed: nothing more may be applied
+            raise MemoryInputError(f"store: the memory was closed after {self.applied} of {self.n} "
+                                   "transitions of this batch were stored")
+        m.tm.expire(m._clock)
+        a, b = self.applied, min(self.n, self.applied + self.chunk)
+        part = self._t if (a, b) == (0, self.n) else self._t.take(slice(a, b))
+        self._parts.append(m._store_chunk(part, self._keys[a:b]))
+        self.applied = b
+        if self.done:   # a remembered answer keeps its ids only, not the batch (resend_window: 8 bytes each)
+            self._t = self._keys = None
+
+    def result(self) -> StoreResult:
+        """The whole batch's StoreResult (applies the chunks still left first)."""
+        while not self.done:
+            self.step()
+        p = self._parts
+        if len(p) == 1:
+            return p[0]
+        return StoreResult(np.concatenate([r.identity_ids for r in p]), sum(r.new_identities for r in p),
+                           sum(r.similarity_hits for r in p), sum(r.evicted for r in p), p[-1].wal_sequence)
+
+
+class _Repeated:
+    """A re-sent store's view of the original :class:`ChunkedStore` (every attribute but ``repeated``)."""
+
+    repeated = True
+
+    def __init__(self, op: ChunkedStore):
+        self._op = op
+
+    def __getattr__(self, name):
+        return getattr(self._op, name)
