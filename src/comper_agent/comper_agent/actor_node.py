@@ -25,7 +25,7 @@ import time
 import numpy as np
 from rclpy.node import Node
 
-from comper_memory.client import MemoryClient, RateLimitTimeout
+from comper_memory.client import MemoryClient, RateLimitTimeout, new_request_id
 from comper_msgs.msg import EpisodeSummary, PolicyWeights
 from comper_msgs_py.ros_params import declare_config
 from comper_msgs_py.qos import RECORDED_QOS as SUMMARY_QOS
@@ -203,10 +203,10 @@ class ActorNode(Node):
         t = rows_to_transitions(rows, self.p.actor_id * EPISODE_ID_STRIDE + self.episodes, self.run_id)
         t.value_labels = self.policy.value_labels(t)
         deadline = time.monotonic() + self.p.rate_limit_timeout_s
-        lost = 0
+        lost, request_id = 0, new_request_id()
         while True:
             try:
-                self.memory.store(t)
+                self.memory.store(t, request_id=request_id)
                 break
             except RateLimitTimeout:
                 if self.stop_event.is_set() or self.final_seen.is_set():
@@ -216,8 +216,8 @@ class ActorNode(Node):
                 if time.monotonic() > deadline:
                     raise
             except ServiceTimeout:
-                # an answer lost on the way: send again (if the first arrived after all, these transitions join
-                # their own identities a second time and count twice in transitions_stored)
+                # no answer even after the client's own re-sends: try again with the same request id, so a
+                # store that did arrive is answered from the memory's remembered answer, not applied twice
                 lost += 1
                 if lost > 3 or self.stop_event.is_set():
                     raise
@@ -279,7 +279,7 @@ class ActorFleet:
                    "-p", f"startup_timeout_s:={startup_timeout_s}"]
             # UDP between the actors and this process: over Fast DDS's shared memory, answers of the memory node
             # to an actor were lost now and then on the loaded 2-core machine (a store waited for ever); with UDP
-            # only it was rarer (docs/comcact.md, Async mode; the actor also re-sends a store whose answer is lost)
+            # only it was rarer (docs/comcact.md, Async mode; lost answers are re-sent with the same request id)
             env = {**os.environ}
             env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
             self.procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,

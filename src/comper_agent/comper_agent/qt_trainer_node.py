@@ -32,6 +32,7 @@ from comper_msgs.msg import QTModel as QTModelMsg
 from comper_memory.client import MemoryClient, MemoryServiceError
 from comper_msgs.srv import Reduce
 from comper_msgs_py.convert import array_to_numpy, numpy_to_array, numpy_to_seq, seq_to_numpy
+from comper_msgs_py.qos import SERVICE_QOS
 from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 from comper_msgs_py.service_client import ServiceError
@@ -108,7 +109,7 @@ class QtTrainerNode(Node):
         self.memory = MemoryClient(self, f"/{self.memory_name}", timeout=p.call_timeout_s,
                                    callback_group=self._group)
         self._pub = self.create_publisher(QTModelMsg, "~/qt_model", QT_MODEL_QOS)
-        self.create_service(Reduce, "~/reduce", self._on_reduce, callback_group=self._group)
+        self.create_service(Reduce, "~/reduce", self._on_reduce, qos_profile=SERVICE_QOS, callback_group=self._group)
         if p.period_s > 0:
             self.create_timer(p.period_s, self._on_timer, callback_group=MutuallyExclusiveCallbackGroup())
         c = self.qt_config

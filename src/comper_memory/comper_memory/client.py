@@ -53,6 +53,7 @@ from comper_msgs_py.service_client import PendingCall, ServiceClient, ServiceRef
 from .core.results import ReductionLease
 
 __all__ = ["MemoryClient", "ReductionClient", "MemoryServiceError", "RateLimitTimeout", "StoreReply", "ReductionSets",
+           "new_request_id",
            "ReduceReply", "CommitReply", "SOURCES", "STATS_FIELDS", "stats_to_dict"]
 
 SOURCES = {"rtm": Sample.Request.SOURCE_RTM, "tm": Sample.Request.SOURCE_TM}
@@ -60,8 +61,10 @@ SOURCES = {"rtm": Sample.Request.SOURCE_RTM, "tm": Sample.Request.SOURCE_TM}
 STATS_FIELDS = tuple(k for k in MemoryStats.get_fields_and_field_types() if k != "header")
 
 
-def _request_id() -> int:
-    """A store's request id: random 63 bits (never 0), unique across clients and processes in practice."""
+def new_request_id() -> int:
+    """A store's request id: random 63 bits (never 0), unique across clients and processes in practice.
+    Give the same id to :meth:`MemoryClient.store` again to retry a store safely: the memory answers a
+    repeated id from its remembered answer and never applies the batch twice (``resend_window``)."""
     return int.from_bytes(os.urandom(8), "little") >> 1 or 1
 
 
@@ -193,11 +196,14 @@ class MemoryClient(ServiceClient):
         return response
 
     # --- the memory's operations --------------------------------------------------------------
-    def store(self, transitions: Transitions, *, timeout: float | None = None) -> StoreReply:
+    def store(self, transitions: Transitions, *, timeout: float | None = None,
+              request_id: int | None = None) -> StoreReply:
         """Store N transitions (value_labels required, one per transition); a refused batch stores nothing.
         Waits while the node's rate limiter holds it back (``rate_limit_timeout``); sent again with the same
-        request id when its answer is lost (``resend_s``), so it is applied once."""
-        req = Store.Request(request_id=_request_id())
+        request id when its answer is lost (``resend_s``), so it is applied once. request_id: None = a new
+        one (:func:`new_request_id`); a caller that retries a store after a ServiceTimeout passes the id of
+        the first try, so the memory applies the batch at most once."""
+        req = Store.Request(request_id=new_request_id() if request_id is None else int(request_id))
         transitions_to_batch(transitions, req.batch)
         r = self._call_limited(self._store, req, timeout)
         return StoreReply(seq_to_numpy(r.identity_ids, np.uint64), int(r.new_identities), int(r.stored),

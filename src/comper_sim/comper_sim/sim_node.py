@@ -24,7 +24,7 @@ from comper_msgs.msg import Array, EpisodeSummary
 from comper_msgs.srv import EnvInfo, Reset, Step, StepMany
 from comper_msgs_py.arrays import TransitionError
 from comper_msgs_py.convert import array_to_numpy, numpy_to_array, numpy_to_seq, transitions_to_batch
-from comper_msgs_py.qos import RECORDED_QOS
+from comper_msgs_py.qos import RECORDED_QOS, SERVICE_QOS
 from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 
@@ -56,10 +56,10 @@ class SimNode(Node):
             raise
         self._env_id = self.config.env_id
         self._episodes_pub = self.create_publisher(EpisodeSummary, "~/episodes", EPISODES_QOS)
-        self.create_service(Reset, "~/reset", self._on_reset)
-        self.create_service(Step, "~/step", self._on_step)
-        self.create_service(StepMany, "~/step_many", self._on_step_many)
-        self.create_service(EnvInfo, "~/info", self._on_info)
+        self.create_service(Reset, "~/reset", self._on_reset, qos_profile=SERVICE_QOS)
+        self.create_service(Step, "~/step", self._on_step, qos_profile=SERVICE_QOS)
+        self.create_service(StepMany, "~/step_many", self._on_step_many, qos_profile=SERVICE_QOS)
+        self.create_service(EnvInfo, "~/info", self._on_info, qos_profile=SERVICE_QOS)
         info = self.bridge.info()
         actions = (f"{info.num_actions} discrete actions" if info.discrete
                    else f"actions {list(info.action_shape)} in [{info.action_low.min():g}, {info.action_high.max():g}]")
