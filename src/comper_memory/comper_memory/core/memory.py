@@ -6,6 +6,7 @@ that protects them all (the ROS node may call from a multi-threaded executor):
 * :class:`~.slots.SlotTable` -- per-identity columns, id <-> slot map, keys for the index;
 * :class:`~.tables.TransitionTable` (TM, FIFO with leases) and :class:`~.tables.ReducedTable`
   (RTM, uniform), with the :class:`~.tables.Remover` that enforces the capacities;
+* :class:`~.reduction.Reduction` -- the two-phase reduction: leases out of TM, commits into RTM;
 * the similarity index (:func:`~.index.make_index`), which decides what each stored
   transition joins;
 * :class:`~.durability.Durability` -- WAL, snapshots, recovery (when ``storage_dir`` is set),
@@ -34,9 +35,10 @@ from .rate_limiter import RateLimited, RateLimiter
 from .chunked_store import ChunkedStore, StoreRegistry
 from .durability import COUNTERS, Durability, check_arrays, t_to_arrays
 from .index import make_index
-from .results import (CommitResult, LeaseError, MemoryInputError, ReductionLease, SampleResult,
-                      StoreResult, empty_transitions, newest_label)
 from .memory_state import replay_record, restore_state, state_arrays
+from .results import (CommitResult, LeaseError, MemoryInputError, ReductionLease, SampleResult,
+                      StoreResult, newest_label)
+from .reduction import Reduction
 from .similarity import ResolveResult, SimilarityIndex
 from .slots import SlotTable
 from .tables import ReducedTable, Remover, TransitionTable
@@ -85,6 +87,7 @@ class CompactMemory:
         self.tm = TransitionTable(self.slots)
         self.rtm = ReducedTable(self.slots)
         self.remover = Remover(self.slots, self.tm, self.rtm, c.rtm_capacity, c.tm_capacity)
+        self.reduction = Reduction(self.slots, self.tm, self.rtm)
         for name in COUNTERS:
             setattr(self, name, 0)
         self.next_reduction_id = 1
@@ -191,18 +194,7 @@ class CompactMemory:
                 raise MemoryInputError(f"begin_reduce: max_sets must be >= 0, got {k}")
             rid = self.next_reduction_id
             self.next_reduction_id += 1
-            deadline = self._clock() + self.config.lease_timeout_s
-            slots, ids = self.tm.lease(k, rid, deadline)
-            if len(slots):
-                hist, lens = self.slots.histories(slots)
-                reps = self.slots.reps(slots, self.slots.newest_labels(slots))
-                counts = self.a["count"][slots].copy()
-            else:
-                hist, lens = np.zeros(0, np.float32), np.zeros(0, np.int64)
-                reps = empty_transitions(self.schema)
-                counts = np.zeros(0, np.int64)
-            return ReductionLease(rid, ids, reps, hist.astype(np.float32), lens.astype(np.int64),
-                                  counts, deadline)
+            return self.reduction.lease(k, rid, self._clock() + self.config.lease_timeout_s, self.schema)
 
     def commit_reduce(self, reduction_id: int, identity_ids: np.ndarray,
                       predictions: np.ndarray) -> CommitResult:
@@ -210,55 +202,21 @@ class CompactMemory:
         with self._lock:
             self.tm.expire(self._clock)
             rid = int(reduction_id)
-            if rid not in self.tm.leases:
-                raise LeaseError(f"commit_reduce: reduction {rid} is unknown, already committed or expired")
-            lids, _ = self.tm.leases[rid]
-            ids = np.asarray(identity_ids, dtype=np.int64).reshape(-1)
-            preds = np.asarray(predictions)
-            if len(ids) != len(lids) or not np.array_equal(np.sort(ids), np.sort(lids)):
-                raise LeaseError(f"commit_reduce: identity_ids differ from those of lease {rid} "
-                                 f"({len(lids)} ids, any order; got {len(ids)})")
-            if preds.shape != (len(ids),) or preds.dtype.kind not in "fiu":
-                raise MemoryInputError(f"commit_reduce: predictions must have shape ({len(ids)},), "
-                                       f"got {preds.shape} {preds.dtype}")
-            preds = preds.astype(np.float32)
-            if not np.isfinite(preds).all():
-                raise MemoryInputError("commit_reduce: predictions hold NaN or Inf")
-            # any order is accepted; the commit is applied (and logged) in the lease's order, so
-            # the resulting state (RTM order, hence seeded samples) does not depend on it
-            in_lease = np.argsort(lids, kind="stable")
-            given = np.argsort(ids, kind="stable")
-            ordered = np.empty_like(preds)
-            ordered[in_lease] = preds[given]
-            ids, preds = lids.copy(), ordered
-            slots = self.slots.slots_of(ids)
-            alive = slots >= 0
-            in_tm = np.zeros(len(ids), dtype=bool)
-            in_tm[alive] = self.tm.contains(slots[alive])
-            tm_key = np.zeros(len(ids), dtype=np.int64)
-            tm_key[alive] = self.a["tm_key"][slots[alive]] if alive.any() else 0
+            commit = self.reduction.check_commit(rid, identity_ids, predictions)
             if self._durable is not None:
-                self._durable.append(self.wal_sequence + 1, st.WAL_COMMIT,
-                                     {"ids": ids, "preds": preds, "in_tm": in_tm, "tm_key": tm_key})
+                self._durable.append(self.wal_sequence + 1, st.WAL_COMMIT, commit)
             self.wal_sequence += 1
             del self.tm.leases[rid]
-            out = self._apply_commit(rid, ids, preds, in_tm, tm_key)
+            out = self._apply_commit(rid, **commit)
             if self._durable is not None:
                 self._durable.maybe_checkpoint()
             return out
 
     def _apply_commit(self, rid, ids, preds, in_tm, tm_key, replay: bool = False) -> CommitResult:
-        slots = self.slots.slots_of(ids)
-        alive = slots >= 0
-        s = slots[alive]
-        if len(s):
-            self.rtm.upsert(s, preds[alive])
-            self.tm.release(s, rid)
-            if replay:  # begin is not logged: reproduce the TM state the commit saw
-                self.tm.replay_membership(s, in_tm[alive], tm_key[alive])
+        n = self.reduction.apply(rid, ids, preds, in_tm, tm_key, replay)
         self.reductions += 1
-        self.sets_reduced += int(alive.sum())
-        return CommitResult(rid, int(alive.sum()), int((~alive).sum()), self.wal_sequence)
+        self.sets_reduced += n
+        return CommitResult(rid, n, len(ids) - n, self.wal_sequence)
 
     def reduce(self, predict_fn: Callable[[ReductionLease], np.ndarray] | None = None,
                max_sets: int | None = None) -> CommitResult:
