@@ -94,10 +94,10 @@ def run(key, n_ident, args):
     # keys: faiss.knn on the memory's reconstructed keys)
     flat_rate = float("nan")
     if not args.no_flat:
-        slots = mem.slots_sorted
+        slots = mem.slots.slots_sorted
         flat = faiss.IndexFlatL2(key)
         for s in range(0, len(slots), 20000):
-            flat.add(mem._keys_of_slots(slots[s:s + 20000]))
+            flat.add(mem.slots.keys_of_slots(slots[s:s + 20000]))
         qs = [transition_keys(b) for b in batches[:max(1, args.flat_batches)]]
         t0 = time.perf_counter()
         for q in qs:

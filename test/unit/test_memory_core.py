@@ -148,7 +148,7 @@ def test_capacity_eviction_consistent():
     mem.store(relabel(first.take(np.arange(5)), np.ones(5)))  # ids 0..4 are now recently updated
     r = mem.store(make(rng, 10))
     assert r.evicted == 10
-    live = set(mem.ids_sorted.tolist())
+    live = set(mem.slots.ids_sorted.tolist())
     assert len(live) == 20
     assert {5, 6, 7, 8, 9}.isdisjoint(live) and set(range(5)) <= live
     assert mem.index.ntotal == 20 == mem.stats()["identities"]

@@ -152,7 +152,7 @@ def test_exact_after_evictions():
         t = Transitions.concatenate([make(rng, 50), perturbed(rng, pool.take(rng.integers(0, 400, 50)), 0.03)])
         got = mem.store(t).identity_ids
         np.testing.assert_array_equal(got, ref.store(t))
-        live = set(mem.ids_sorted.tolist())
+        live = set(mem.slots.ids_sorted.tolist())
         ref.remove(np.asarray([i for i in ref.ids if i not in live]))
         assert mem.stats()["identities"] <= 300
         assert mem.index.ntotal == mem.stats()["identities"]
@@ -185,7 +185,7 @@ def test_engines_match_reference_with_evictions(engine, delta):
                                                np.sqrt(max(delta, 1e-6)) / 2)])
         t = t.take(rng.permutation(len(t)))
         np.testing.assert_array_equal(mem.store(t).identity_ids, ref.store(t))
-        live = set(mem.ids_sorted.tolist())
+        live = set(mem.slots.ids_sorted.tolist())
         ref.remove(np.asarray([i for i in ref.ids if i not in live]))
         assert mem.index.ntotal == mem.stats()["identities"]
     assert mem.index.engine == engine and mem.stats()["evictions"] > 0
