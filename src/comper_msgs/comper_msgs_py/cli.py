@@ -428,10 +428,18 @@ def _wait_topic_type(g, topic: str, timeout: float) -> str | None:
         g.spin(0.1)
 
 
-def _subscription_qos(g, topic: str, args):
+def _subscription_qos(g, topic: str, args, end: float = 0.0):
+    """The subscriber QoS that hears the topic's publishers. Publishers are waited for until ``end``
+    (a time.monotonic() value) unless both policies are given: a reliable subscription chosen before
+    discovery never matches a best-effort publisher (what ``--timeout`` with an explicit type hit)."""
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-    pubs = [(i.qos_profile.reliability.name.lower(), i.qos_profile.durability.name.lower())
-            for i in g.node.get_publishers_info_by_topic(topic)]
+    while True:
+        infos = g.node.get_publishers_info_by_topic(topic)
+        if infos or (args.qos_reliability and args.qos_durability) or time.monotonic() >= end \
+                or not g.context.ok():
+            break
+        g.spin(0.1)
+    pubs = [(i.qos_profile.reliability.name.lower(), i.qos_profile.durability.name.lower()) for i in infos]
     reliability, durability = choose_qos_policies(pubs)
     return QoSProfile(depth=args.qos_depth,
                       reliability=ReliabilityPolicy[(args.qos_reliability or reliability).upper()],
@@ -469,8 +477,8 @@ def _topic_echo(g, args) -> int:
         print("---", flush=True)
         got[0] += 1
 
-    g.node.create_subscription(msg_cls, topic, on_msg, _subscription_qos(g, topic, args))
     end = time.monotonic() + args.timeout if args.timeout > 0 else math.inf
+    g.node.create_subscription(msg_cls, topic, on_msg, _subscription_qos(g, topic, args, end))
     while g.context.ok() and got[0] >= 0 and not (wanted and got[0] >= wanted):
         if time.monotonic() >= end:
             print(f"ros2 topic echo: {got[0]} of {wanted or 'unbounded'} messages on {topic} within "
@@ -494,7 +502,8 @@ def _topic_hz(g, args) -> int:
         stamps.append(time.monotonic())
         fresh[0] += 1
 
-    g.node.create_subscription(_import_type(type_name), topic, on_msg, _subscription_qos(g, topic, _HzQos()),
+    qos = _subscription_qos(g, topic, _HzQos(), time.monotonic() + 2.0)
+    g.node.create_subscription(_import_type(type_name), topic, on_msg, qos,
                                raw=True)
     reports = 0
     start = next_report = time.monotonic() + 1.0
