@@ -2,16 +2,22 @@
 values, with raw keys (the thesis) and with per-dimension standardised keys, on transitions of a
 gymnasium MuJoCo task (in-process: CompactMemory, no ROS).
 
-The keys are concat(s, a, r, s'). "zscore" standardises each dimension with the mean and standard
-deviation of the collected data (s and s' share the observation's), which is what a key normaliser
-frozen per reduction would converge to; "none" is the thesis's raw key. For each (task, keys, delta)
-it prints the identities per 1,000 transitions (1,000 = no compression), the hit rate (transitions that
-joined an existing identity) and the set-size distribution (mean, p90, max members per identity).
+The keys are concat(s, a, r, s'). Key modes:
+* "none": the thesis's raw key;
+* "running": the memory's own ``key_normalisation: running`` (running mean and standard deviation,
+  frozen between reductions; a reduction every ``--reduce-every`` stored transitions, as in a run);
+* "zscore": each dimension standardised with the mean and standard deviation of all the collected
+  data at once (s and s' share the observation's): what "running" converges to, known in advance.
+For each (task, keys, delta) it prints the identities per 1,000 transitions (1,000 = no compression),
+the hit rate (transitions that joined an existing identity) and the set-size distribution (mean, p90,
+max members per identity).
 
-Transitions come from uniformly random actions (what a run's first steps look like), so they spread
-more than a converged policy's: a lower bound on the compression a learning run would see.
+Transitions come from uniformly random actions (what a run's first steps look like), or with
+``--policy CHECKPOINT`` from a trained actor (comcact_node or ddpg checkpoint) with Gaussian noise of
+``--noise`` x the action half-range, as a run's later steps look:
 
     python benchmarks/set_formation_bench.py --tasks Hopper-v4 HalfCheetah-v4 --steps 20000
+    python benchmarks/set_formation_bench.py --tasks Hopper-v4 --policy <run dir>/checkpoints/latest.pt
 """
 from __future__ import annotations
 
@@ -27,14 +33,19 @@ from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.params import config_from_dict
 
 
-def collect(task: str, steps: int, seed: int) -> Transitions:
+def collect(task: str, steps: int, seed: int, policy=None, noise: float = 0.1) -> Transitions:
     import gymnasium as gym
     env = gym.make(task)
     rng = np.random.default_rng(seed)
     obs, _ = env.reset(seed=seed)
+    lo, hi = env.action_space.low, env.action_space.high
     S, A, R, S2, T, U = [], [], [], [], [], []
     for _ in range(steps):
-        a = rng.uniform(env.action_space.low, env.action_space.high).astype(np.float32)
+        if policy is None:
+            a = rng.uniform(lo, hi).astype(np.float32)
+        else:
+            a = policy.actions(np.asarray(obs, np.float32)[None])[0]
+            a = np.clip(a + rng.normal(0.0, noise * (hi - lo) / 2), lo, hi).astype(np.float32)
         nxt, r, term, trunc, _ = env.step(a)
         S.append(obs), A.append(a), R.append(r), S2.append(nxt), T.append(term), U.append(trunc)
         obs = nxt
@@ -57,17 +68,22 @@ def standardise(t: Transitions) -> Transitions:
                        t.terminated, t.truncated, value_labels=t.value_labels)
 
 
-def measure(t: Transitions, delta: float, batch: int = 1000) -> dict:
+def measure(t: Transitions, delta: float, key_normalisation: str = "none", batch: int = 1000) -> dict:
+    """Store t in batches of ``batch`` transitions with a reduction after each (the reduction is when a
+    running key normaliser updates its frozen map)."""
     cfg = config_from_dict(MemoryConfig, {"delta": delta, "rtm_capacity": len(t) + 1, "tm_capacity": len(t) + 1,
-                                          "max_store_batch": batch, "reduce_batch": len(t)})
+                                          "max_store_batch": batch, "reduce_batch": len(t),
+                                          "key_normalisation": key_normalisation})
     mem = CompactMemory(cfg)
     t0 = time.perf_counter()
     for i in range(0, len(t), batch):
         mem.store(t.take(slice(i, i + batch)))
+        mem.reduce()
     st = mem.stats()
     mem.reduce()                      # every set into RTM (newest label as prediction), to sample its counts
     sizes = np.asarray(mem.sample(min(st["identities"], 5000), source="rtm", rng=np.random.default_rng(0)).counts)
     return {"identities_per_1000": 1000.0 * st["identities"] / len(t), "hit_rate": st["hit_rate"],
+            "key_norm_updates": st["key_norm_updates"],
             "set_size_mean": float(sizes.mean()), "set_size_p90": float(np.percentile(sizes, 90)),
             "set_size_max": int(sizes.max()), "seconds": time.perf_counter() - t0}
 
@@ -78,22 +94,35 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=20_000)
     ap.add_argument("--deltas", nargs="+", type=float, default=[1e-4, 1e-3, 1e-2, 1e-1, 1.0])
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--keys", nargs="+", default=["none", "running", "zscore"], choices=["none", "running", "zscore"])
+    ap.add_argument("--reduce-every", type=int, default=1000, help="stored transitions between reductions")
+    ap.add_argument("--policy", help="a comcact_node / ddpg checkpoint whose actor chooses the actions "
+                    "(default: uniformly random actions)")
+    ap.add_argument("--noise", type=float, default=0.1, help="with --policy: Gaussian action noise, "
+                    "as a fraction of the action half-range")
     ap.add_argument("--json", help="also write the rows to this file")
     args = ap.parse_args(argv)
+    policy = None
+    if args.policy:
+        from comper_agent.value_checks import load_policy
+        policy = load_policy(args.policy)
     rows = []
     print("| task | keys | delta | identities per 1,000 transitions | hit rate | set size mean / p90 / max |")
     print("|---|---|---|---|---|---|")
     for task in args.tasks:
-        raw = collect(task, args.steps, args.seed)
-        for keys, t in (("none", raw), ("zscore", standardise(raw))):
+        raw = collect(task, args.steps, args.seed, policy, args.noise)
+        for keys in args.keys:
+            t = standardise(raw) if keys == "zscore" else raw
             for d in args.deltas:
-                m = measure(t, d)
+                m = measure(t, d, "running" if keys == "running" else "none", args.reduce_every)
                 rows.append({"task": task, "keys": keys, "delta": d, "transitions": len(t), **m})
                 print(f"| {task} | {keys} | {d:g} | {m['identities_per_1000']:.0f} | {m['hit_rate']:.3f} | "
                       f"{m['set_size_mean']:.2f} / {m['set_size_p90']:.0f} / {m['set_size_max']} |", flush=True)
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"steps": args.steps, "seed": args.seed, "rows": rows}, f, indent=1)
+            json.dump({"steps": args.steps, "seed": args.seed, "reduce_every": args.reduce_every,
+                       "actions": "random" if policy is None else f"policy + {args.noise:g} noise",
+                       "rows": rows}, f, indent=1)
     return 0
 
 

@@ -367,3 +367,23 @@ def test_bad_parameter_is_refused_at_start(launch):
     assert proc.proc.wait(timeout=30) == 1
     log = proc.log()
     assert "cannot start" in log and "durability" in log and "Traceback" not in log
+
+
+def test_key_normalisation_through_the_node(launch, client_of):
+    """`-p key_normalisation:=running`: the first reduction freezes the keys' mean and scale and the node's
+    stats say so; an unknown mode stops the node at start with the parameter named."""
+    proc, name = start(launch, "keynorm", "-p", "key_normalisation:=running", "-p", "delta:=0.5")
+    memory = client_of(name)
+    memory.store(make_batch(2, 0, 200))
+    s = memory.stats()
+    assert (s["key_norm_updates"], s["key_norm_keys"]) == (0, 0)
+    memory.reduce(max_sets=50)
+    s = memory.stats()
+    assert (s["key_norm_updates"], s["key_norm_keys"]) == (1, 200) and s["identities"] == 200
+    # the same transitions again: distance 0 under the new map, so they join their identities
+    r = memory.store(make_batch(2, 0, 200, label_shift=1.0))
+    assert r.new_identities == 0
+    assert proc.alive()
+    bad, _ = start(launch, "keynormbad", "-p", "key_normalisation:=zscore")
+    assert bad.proc.wait(timeout=30) == 1
+    assert "key_normalisation" in bad.log() and "Traceback" not in bad.log()

@@ -50,6 +50,20 @@ class MemoryConfig:
     frame_scale: float = param(
         1.0 / 255.0, "factor applied once to uint8 observations when building keys (float32 "
         "observations are used raw)", thesis="frames scaled to [0, 1] (section 5.1)", minimum=0.0)
+    key_normalisation: str = param(
+        "none", "how keys are scaled before every similarity decision: 'none' (raw [s, a, r, s']) or 'running' "
+        "(each dimension standardised by the running mean and standard deviation of the keys stored so far, "
+        "frozen between reductions; the memory re-indexes when they change; delta is then in standard "
+        "deviations; docs/memory.md, 'Key normalisation')", thesis="raw keys (section 4.2)",
+        deviation="'running' is not in the thesis: with raw MuJoCo keys at delta 1e-4 no two transitions are "
+        "similar", choices=("none", "running"))
+    key_norm_growth: float = param(
+        2.0, "key_normalisation running: replace the frozen mean and scale at a reduction once the keys stored "
+        "have grown this many times since the last replacement (so re-indexing happens about log2(n) times)",
+        minimum=1.01)
+    key_norm_min_std: float = param(
+        1e-6, "key_normalisation running: a key dimension whose standard deviation is below this keeps scale 1",
+        minimum=0.0)
     storage_dir: str = param(
         "", "directory for the write-ahead log and snapshots; '' keeps the memory in process only")
     durability: str = param(
@@ -119,6 +133,8 @@ class MemoryConfig:
             raise ConfigError(f"rate_error_buffer ({self.rate_error_buffer:g}) must be at least "
                               f"max(1, samples_per_insert) = {max(1.0, self.samples_per_insert):g} when "
                               "samples_per_insert is set")
+        if self.key_normalisation not in ("none", "running"):
+            raise ConfigError(f"key_normalisation {self.key_normalisation!r} is not one of none, running")
         if self.durability not in ("flush", "fsync", "none"):
             raise ConfigError(f"durability {self.durability!r} is not one of flush, fsync, none")
         return self

@@ -35,6 +35,7 @@ from .rate_limiter import RateLimited, RateLimiter
 from .chunked_store import ChunkedStore, StoreRegistry
 from .durability import COUNTERS, Durability, check_arrays, t_to_arrays
 from .index import make_index
+from .key_norm import KeyNormaliser
 from .memory_state import replay_record, restore_state, state_arrays
 from .results import (CommitResult, LeaseError, MemoryInputError, ReductionLease, SampleResult,
                       StoreResult, newest_label)
@@ -82,7 +83,8 @@ class CompactMemory:
         c = self.config
         self.schema: dict | None = None   # obs_shape, obs_dtype, action_shape, action_dtype, key_size
         self.index: SimilarityIndex | None = None
-        self.slots = SlotTable(c.history_length, c.frame_scale)
+        self.key_norm = KeyNormaliser(c.key_normalisation, c.key_norm_growth, c.key_norm_min_std)
+        self.slots = SlotTable(c.history_length, c.frame_scale, self.key_norm)
         self.a = self.slots.a   # the slot columns (one dict for the table's life; tests read it)
         self.tm = TransitionTable(self.slots)
         self.rtm = ReducedTable(self.slots)
@@ -140,18 +142,20 @@ class CompactMemory:
 
     def _store_chunk(self, clean: Transitions, keys: np.ndarray) -> StoreResult:
         """One logged store of a validated batch (the lock is held)."""
-        y = self.index.project(keys)
-        res = self.index.resolve(keys, y)
+        nkeys = self.key_norm.apply(keys)
+        y = self.index.project(nkeys)
+        res = self.index.resolve(nkeys, y)
         if self._durable is not None:
             self._durable.append(self.wal_sequence + 1, st.WAL_STORE, t_to_arrays(clean))
         self.wal_sequence += 1
-        out = self._apply_store(clean, y, res)
+        out = self._apply_store(clean, y, res, keys)
         if self._durable is not None:
             self._durable.maybe_checkpoint()
         return out
 
-    def _apply_store(self, t: Transitions, y: np.ndarray, res: ResolveResult) -> StoreResult:
+    def _apply_store(self, t: Transitions, y: np.ndarray, res: ResolveResult, raw_keys: np.ndarray) -> StoreResult:
         n = len(t)
+        self.key_norm.observe(raw_keys)
         cidx = np.flatnonzero(res.creates)
         n_new = len(cidx)
         new_ids = self.next_id + np.arange(n_new, dtype=np.int64)
@@ -214,6 +218,9 @@ class CompactMemory:
 
     def _apply_commit(self, rid, ids, preds, in_tm, tm_key, replay: bool = False) -> CommitResult:
         n = self.reduction.apply(rid, ids, preds, in_tm, tm_key, replay)
+        if self.key_norm.maybe_freeze():   # new mean/scale: every identity's key changes
+            self.index = make_index(self.config, self.index.key_dim, self.slots, self.index_engine)
+            self.index.reindex()
         self.reductions += 1
         self.sets_reduced += n
         return CommitResult(rid, n, len(ids) - n, self.wal_sequence)
@@ -293,6 +300,7 @@ class CompactMemory:
                 "reductions": self.reductions, "sets_reduced": self.sets_reduced,
                 "evictions": self.evictions, "bytes_used": self.bytes_used(),
                 "wal_sequence": self.wal_sequence, "leases": len(self.tm.leases),
+                **self.key_norm.stats(),
             }
 
     def rate_stats(self) -> dict:

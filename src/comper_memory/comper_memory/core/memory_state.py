@@ -28,10 +28,12 @@ def state_arrays(mem: CompactMemory) -> tuple[dict[str, np.ndarray], dict]:
         arrays = mem.slots.rows()
         mem.tm.snapshot_into(arrays)
         mem.rtm.snapshot_into(arrays)
+        arrays.update(mem.key_norm.arrays())
     c, sch = mem.config, mem.schema
     meta = {"schema": None if sch is None else
             {**sch, "obs_shape": list(sch["obs_shape"]), "action_shape": list(sch["action_shape"])},
             "history_length": c.history_length, "delta": c.delta, "frame_scale": c.frame_scale,
+            **_key_norm_meta(c),
             "counters": {k: int(getattr(mem, k)) for k in COUNTERS}}
     return arrays, meta
 
@@ -43,6 +45,9 @@ def restore_state(mem: CompactMemory, arrays: dict[str, np.ndarray], meta: dict)
             meta.get("frame_scale") != c.frame_scale:
         raise st.SnapshotError("snapshot was written with a different delta, frame_scale or "
                                "history_length than this memory's configuration")
+    if _key_norm_meta(meta) != _key_norm_meta(c):
+        raise st.SnapshotError(f"snapshot was written with key normalisation {_key_norm_meta(meta)}, this memory "
+                               f"is configured with {_key_norm_meta(c)}")
     sch = meta.get("schema")
     if sch is not None and mem.expected_key_size is not None and sch["key_size"] != mem.expected_key_size:
         raise st.SnapshotError(f"snapshot key size {sch['key_size']} differs from {mem.expected_key_size}")
@@ -56,6 +61,7 @@ def restore_state(mem: CompactMemory, arrays: dict[str, np.ndarray], meta: dict)
     mem.slots.load_rows(arrays)
     mem.tm.restore(arrays["tm_order"])
     mem.rtm.restore(arrays["rtm_order"])
+    mem.key_norm.load(arrays)
     mem.index.reindex()
 
 
@@ -66,13 +72,26 @@ def replay_record(mem: CompactMemory, seq: int, kind: int, arr: dict[str, np.nda
                                      replay=True)
         if mem.schema is None:
             mem._init_schema(schema_of(clean))
-        y = mem.index.project(keys)
-        res = mem.index.resolve(keys, y)
+        nkeys = mem.key_norm.apply(keys)
+        y = mem.index.project(nkeys)
+        res = mem.index.resolve(nkeys, y)
         mem.wal_sequence = seq
-        mem._apply_store(clean, y, res)
+        mem._apply_store(clean, y, res, keys)
     elif kind == st.WAL_COMMIT:
         mem.wal_sequence = seq
         mem.next_reduction_id += 1
         mem._apply_commit(-1, arr["ids"], arr["preds"], arr["in_tm"], arr["tm_key"], replay=True)
     else:
         raise st.SnapshotError(f"WAL record {seq}: unknown kind {kind}")
+
+
+def _key_norm_meta(c) -> dict:
+    """The key normaliser's settings a snapshot records and must match (a config or a snapshot's meta;
+    snapshots written before the option: none). With 'running' its growth and floor decide when the
+    frozen map changes, so a WAL replayed on top of the snapshot must use the same ones."""
+    get = (lambda k, d: c.get(k, d)) if isinstance(c, dict) else (lambda k, d: getattr(c, k))
+    mode = get("key_normalisation", "none")
+    if mode == "none":
+        return {"key_normalisation": "none"}
+    return {"key_normalisation": mode, "key_norm_growth": float(get("key_norm_growth", 0.0)),
+            "key_norm_min_std": float(get("key_norm_min_std", 0.0))}

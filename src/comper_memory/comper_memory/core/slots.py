@@ -8,7 +8,8 @@ slots are reused (a free list). ``ids_sorted``/``slots_sorted`` map live ids to 
 increasing, so a lookup is a binary search).
 
 The table is also the index's :class:`~comper_memory.core.similarity.KeySource`: an identity's
-key is rebuilt from its representative, so no key is stored twice. Not thread-safe: the
+key is rebuilt from its representative (and scaled by the memory's
+:class:`~.key_norm.KeyNormaliser`), so no key is stored twice. Not thread-safe: the
 memory holds the lock.
 """
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
+from .key_norm import KeyNormaliser
 from .keys import transition_keys
 
 __all__ = ["SlotTable", "SLOT_FIELDS"]
@@ -36,9 +38,10 @@ _REP_COLUMNS = (("states", "states"), ("next_states", "next_states"), ("actions"
 class SlotTable:
     """Columns ``a`` indexed by slot, the free list, and the live id <-> slot map."""
 
-    def __init__(self, history_length: int, frame_scale: float):
+    def __init__(self, history_length: int, frame_scale: float, key_norm: KeyNormaliser | None = None):
         self.H = int(history_length)
         self.frame_scale = frame_scale
+        self.key_norm = key_norm if key_norm is not None else KeyNormaliser()
         self.schema: dict | None = None
         self.cap = 0
         self.a: dict[str, np.ndarray] = {}
@@ -148,7 +151,7 @@ class SlotTable:
         a = self.a
         t = Transitions(a["states"][slots], a["actions"][slots], a["rewards"][slots],
                         a["next_states"][slots], a["terminated"][slots], a["truncated"][slots])
-        return transition_keys(t, self.frame_scale)
+        return self.key_norm.apply(transition_keys(t, self.frame_scale))
 
     def create(self, ids: np.ndarray, t: Transitions, rows: np.ndarray) -> np.ndarray:
         """New identities ``ids`` (increasing, above every live id) represented by ``t[rows]``;
