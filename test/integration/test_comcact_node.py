@@ -3,12 +3,14 @@ embedded bring-up on InvertedPendulum-v4 (evaluations and episodes published, ru
 written, Ctrl-C saves a final checkpoint); external bring-up with sim_node, memory_node and
 qt_trainer_node started by ros2 run (with restore_batch: the re-stored batches join their sets in
 the memory node); the ddpg variant with a checkpoint round trip and resume."""
+import json
 import os
 import signal
 import time
 
 import pytest
 import torch
+import yaml
 
 from comper_agent import run_io
 from comper_agent.comcact_node import SUMMARY_QOS
@@ -153,13 +155,15 @@ def test_record_parameter_writes_a_bag_that_reproduces_the_training_returns(laun
 def test_record_keeps_every_episode_when_the_agent_outpaces_the_recorder(launch, tmp_path, where):
     """Random-action InvertedPendulum episodes (a few steps each, hundreds per second) come faster than
     the recorder writes them: the agent waits at record_window unwritten episodes (RecordingFlow), so
-    the topics' KEEP_LAST 100 queues drop none (before the flow control, 27 % went missing)."""
+    the topics' KEEP_LAST 100 queues drop none (before the flow control, 27 % went missing). The
+    in-process run also records without compression (record_compression:=none reaches the recorder)."""
     from comper_agent import offline
 
+    compression = "zstd" if where == "child" else "none"
     proc = launch("comper_agent", "comcact_node",
                   *_args(tmp_path, "fast", "-p", "algorithm:=ddpg", "-p", "total_steps:=6000", "-p", "warmup_steps:=6000",
                          "-p", "eval_every:=0", "-p", "record:=true", "-p", f"record_process:={where}",
-                         "-p", "transport_probe_calls:=0"), name="fast")
+                         "-p", f"record_compression:={compression}", "-p", "transport_probe_calls:=0"), name="fast")
     assert _wait(proc, 240) == 0, proc.log()[-4000:]
     assert "written off" not in proc.log()
     logged = [(r["episode"], r["ret"], r["length"])
@@ -167,6 +171,9 @@ def test_record_keeps_every_episode_when_the_agent_outpaces_the_recorder(launch,
     (run,) = offline.read_runs([tmp_path / "fast"]).values()
     assert len(logged) > 300
     assert [(e.episode_id, e.episode_return, e.length) for e in run.train_episodes()] == logged
+    (meta,) = (tmp_path / "fast").rglob("metadata.yaml")
+    custom = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]["custom_data"]
+    assert json.loads(custom["recorder"])["compression"] == compression
 
 
 def test_agent_goes_on_without_waiting_when_its_recorder_process_dies(launch, tmp_path):

@@ -59,6 +59,9 @@ class AgentRunConfig:
         False, "record this run's topics (transitions, episodes, evaluations, memory stats, sim episodes) "
         "into a rosbag2 bag in <run dir>/bag with a recorder_node (docs/recording.md)")
     record_storage: str = param("mcap", "bag storage when record is on", choices=("mcap", "sqlite3"))
+    record_compression: str = param(
+        "zstd", "bag compression when record is on: zstd (MCAP: compressed chunks, as ros2 bag record writes them; "
+        "sqlite3: each message) or none", choices=("zstd", "none"))
     record_process: str = param(
         "child", "where record:=true runs its recorder_node: 'child' = a child process (its work runs on "
         "another core; the agent waits until it has subscribed, hands every message over before stopping it, "

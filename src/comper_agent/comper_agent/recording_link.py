@@ -42,7 +42,7 @@ class RecordingLink:
         self.proc = None              # child process
         self.flow = None
         params = {"run_id": run_id, "algorithm": p.algorithm, "output_dir": str(run_dir.path.parent),
-                  "storage": p.record_storage, "topics": topics}
+                  "storage": p.record_storage, "compression": p.record_compression, "topics": topics}
         if p.record_process == "in_process":
             from rclpy.parameter import Parameter
 
