@@ -17,7 +17,8 @@ from comper_agent.comper_node import ComperNode, ComperNodeConfig
 from comper_msgs_py.params import ConfigError, config_from_dict, config_to_dict
 
 _COMMON = {"bringup": "embedded", "episode_end": "standard", "runs_root": "runs", "run_id": "", "resume": "",
-           "keep_checkpoints": 3, "tensorboard": True, "record": False, "record_storage": "mcap", "record_process": "child",
+           "keep_checkpoints": 3, "tensorboard": True, "record": False, "record_storage": "mcap", "record_compression": "zstd",
+           "record_process": "child",
            "record_window": 50, "record_wait_s": 60.0,
            "publish_transitions": True, "sim_node": "sim_node", "memory_node": "memory_node",
            "qt_trainer_node": "qt_trainer_node", "service_timeout_s": 120.0, "startup_timeout_s": 30.0,
