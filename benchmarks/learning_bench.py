@@ -135,6 +135,17 @@ def _spawn(base: Path, rid: str, cmd: list, domain: int, alg, task, seed) -> dic
 DOMAIN_CLAIMS = Path(os.environ.get("TMPDIR", "/tmp")) / "comper-ros-domains"
 
 
+
+def on_grid(evals, every: int) -> list[tuple[int, float]]:
+    """(step, mean return) of each logged evaluation, with the step put on the eval_every grid when it lies
+    just past a grid point: an async learner evaluates at the first step count at or past each multiple
+    (its actors store in batches), e.g. 25,024 for 25,000. Other steps are kept as logged."""
+    out = []
+    for e in evals:
+        st, k = int(e[0]), int(e[0]) // every * every
+        out.append((k if 0 <= st - k < max(1, every // 10) else st, float(e[1])))
+    return out
+
 def claim_domain() -> int:
     """A ROS_DOMAIN_ID in 101..231 that no other run on this machine holds (a claim file created with
     O_EXCL; a claim whose process is gone is taken over). Nodes of two runs in one domain have the same
@@ -277,7 +288,7 @@ def report(args, base: Path) -> dict:
             for x in steps:
                 vals = []
                 for r in runs:
-                    e = at_step([{"step": st, "mean_return": mr} for st, mr, _ in r["evals"]], x)
+                    e = at_step([{"step": st, "mean_return": mr} for st, mr in on_grid(r["evals"], args.eval_every)], x)
                     if e is not None and e["step"] >= x - args.eval_every + 1:
                         vals.append(e["mean_return"])
                 if vals:
@@ -326,7 +337,7 @@ def report(args, base: Path) -> dict:
                 if not runs:
                     continue
                 # the evaluations on the eval_every grid (comper_node adds one at the run's last step)
-                grid = [[e for e in r["evals"] if e[0] % args.eval_every == 0] for r in runs]
+                grid = [[e for e in on_grid(r["evals"], args.eval_every) if e[0] % args.eval_every == 0] for r in runs]
                 n = min(len(g) for g in grid)
                 st = np.array([e[0] for e in grid[0][:n]])
                 vals = np.array([[e[1] for e in g[:n]] for g in grid])
