@@ -135,7 +135,6 @@ def _spawn(base: Path, rid: str, cmd: list, domain: int, alg, task, seed) -> dic
 DOMAIN_CLAIMS = Path(os.environ.get("TMPDIR", "/tmp")) / "comper-ros-domains"
 
 
-
 def on_grid(evals, every: int) -> list[tuple[int, float]]:
     """(step, mean return) of each logged evaluation, with the step put on the eval_every grid when it lies
     just past a grid point: an async learner evaluates at the first step count at or past each multiple
@@ -145,6 +144,7 @@ def on_grid(evals, every: int) -> list[tuple[int, float]]:
         st, k = int(e[0]), int(e[0]) // every * every
         out.append((k if 0 <= st - k < max(1, every // 10) else st, float(e[1])))
     return out
+
 
 def claim_domain() -> int:
     """A ROS_DOMAIN_ID in 101..231 that no other run on this machine holds (a claim file created with

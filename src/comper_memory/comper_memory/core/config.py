@@ -5,6 +5,8 @@ from dataclasses import dataclass
 
 from comper_msgs_py.params import ConfigError, param
 
+from .key_norm import KEY_NORM_MODES
+
 __all__ = ["MemoryConfig"]
 
 
@@ -56,7 +58,7 @@ class MemoryConfig:
         "frozen between reductions; the memory re-indexes when they change; delta is then in standard "
         "deviations; docs/memory.md, 'Key normalisation')", thesis="raw keys (section 4.2)",
         deviation="'running' is not in the thesis: with raw MuJoCo keys at delta 1e-4 no two transitions are "
-        "similar", choices=("none", "running"))
+        "similar", choices=KEY_NORM_MODES)
     key_norm_growth: float = param(
         2.0, "key_normalisation running: replace the frozen mean and scale at a reduction once the keys stored "
         "have grown this many times since the last replacement (so re-indexing happens about log2(n) times)",
@@ -133,8 +135,8 @@ class MemoryConfig:
             raise ConfigError(f"rate_error_buffer ({self.rate_error_buffer:g}) must be at least "
                               f"max(1, samples_per_insert) = {max(1.0, self.samples_per_insert):g} when "
                               "samples_per_insert is set")
-        if self.key_normalisation not in ("none", "running"):
-            raise ConfigError(f"key_normalisation {self.key_normalisation!r} is not one of none, running")
+        if self.key_normalisation not in KEY_NORM_MODES:
+            raise ConfigError(f"key_normalisation {self.key_normalisation!r} is not one of {', '.join(KEY_NORM_MODES)}")
         if self.durability not in ("flush", "fsync", "none"):
             raise ConfigError(f"durability {self.durability!r} is not one of flush, fsync, none")
         return self

@@ -24,11 +24,17 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["KeyNormaliser", "KEY_NORM_MODES", "KEY_NORM_ARRAYS"]
+__all__ = ["KeyNormaliser", "KEY_NORM_MODES", "resolve_store"]
 
 KEY_NORM_MODES = ("none", "running")
-#: the snapshot arrays of a running normaliser
-KEY_NORM_ARRAYS = ("key_norm_mean", "key_norm_scale", "key_norm_moments", "key_norm_counts")
+
+
+def resolve_store(index, key_norm: "KeyNormaliser", raw_keys: np.ndarray):
+    """(projections, ResolveResult) of a store's raw keys: what a live store and its WAL replay both decide
+    on, so the two cannot scale keys differently."""
+    keys = key_norm.apply(raw_keys)
+    y = index.project(keys)
+    return y, index.resolve(keys, y)
 
 
 class KeyNormaliser:

@@ -35,7 +35,7 @@ from .rate_limiter import RateLimited, RateLimiter
 from .chunked_store import ChunkedStore, StoreRegistry
 from .durability import COUNTERS, Durability, check_arrays, t_to_arrays
 from .index import make_index
-from .key_norm import KeyNormaliser
+from .key_norm import KeyNormaliser, resolve_store
 from .memory_state import replay_record, restore_state, state_arrays
 from .results import (CommitResult, LeaseError, MemoryInputError, ReductionLease, SampleResult,
                       StoreResult, newest_label)
@@ -142,9 +142,7 @@ class CompactMemory:
 
     def _store_chunk(self, clean: Transitions, keys: np.ndarray) -> StoreResult:
         """One logged store of a validated batch (the lock is held)."""
-        nkeys = self.key_norm.apply(keys)
-        y = self.index.project(nkeys)
-        res = self.index.resolve(nkeys, y)
+        y, res = resolve_store(self.index, self.key_norm, keys)
         if self._durable is not None:
             self._durable.append(self.wal_sequence + 1, st.WAL_STORE, t_to_arrays(clean))
         self.wal_sequence += 1

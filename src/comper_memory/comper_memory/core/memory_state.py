@@ -7,12 +7,14 @@ memory and is called with its lock held (or during its construction, by recovery
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from . import storage as st
 from .durability import COUNTERS, arrays_to_t, check_counters
+from .key_norm import resolve_store
 from .validation import schema_of, validate_store
 
 if TYPE_CHECKING:
@@ -33,7 +35,7 @@ def state_arrays(mem: CompactMemory) -> tuple[dict[str, np.ndarray], dict]:
     meta = {"schema": None if sch is None else
             {**sch, "obs_shape": list(sch["obs_shape"]), "action_shape": list(sch["action_shape"])},
             "history_length": c.history_length, "delta": c.delta, "frame_scale": c.frame_scale,
-            **_key_norm_meta(c),
+            **_key_norm_meta(dataclasses.asdict(c)),
             "counters": {k: int(getattr(mem, k)) for k in COUNTERS}}
     return arrays, meta
 
@@ -45,9 +47,10 @@ def restore_state(mem: CompactMemory, arrays: dict[str, np.ndarray], meta: dict)
             meta.get("frame_scale") != c.frame_scale:
         raise st.SnapshotError("snapshot was written with a different delta, frame_scale or "
                                "history_length than this memory's configuration")
-    if _key_norm_meta(meta) != _key_norm_meta(c):
+    ours = _key_norm_meta(dataclasses.asdict(c))
+    if _key_norm_meta(meta) != ours:
         raise st.SnapshotError(f"snapshot was written with key normalisation {_key_norm_meta(meta)}, this memory "
-                               f"is configured with {_key_norm_meta(c)}")
+                               f"is configured with {ours}")
     sch = meta.get("schema")
     if sch is not None and mem.expected_key_size is not None and sch["key_size"] != mem.expected_key_size:
         raise st.SnapshotError(f"snapshot key size {sch['key_size']} differs from {mem.expected_key_size}")
@@ -72,9 +75,7 @@ def replay_record(mem: CompactMemory, seq: int, kind: int, arr: dict[str, np.nda
                                      replay=True)
         if mem.schema is None:
             mem._init_schema(schema_of(clean))
-        nkeys = mem.key_norm.apply(keys)
-        y = mem.index.project(nkeys)
-        res = mem.index.resolve(nkeys, y)
+        y, res = resolve_store(mem.index, mem.key_norm, keys)
         mem.wal_sequence = seq
         mem._apply_store(clean, y, res, keys)
     elif kind == st.WAL_COMMIT:
@@ -85,13 +86,10 @@ def replay_record(mem: CompactMemory, seq: int, kind: int, arr: dict[str, np.nda
         raise st.SnapshotError(f"WAL record {seq}: unknown kind {kind}")
 
 
-def _key_norm_meta(c) -> dict:
-    """The key normaliser's settings a snapshot records and must match (a config or a snapshot's meta;
-    snapshots written before the option: none). With 'running' its growth and floor decide when the
-    frozen map changes, so a WAL replayed on top of the snapshot must use the same ones."""
-    get = (lambda k, d: c.get(k, d)) if isinstance(c, dict) else (lambda k, d: getattr(c, k))
-    mode = get("key_normalisation", "none")
-    if mode == "none":
+def _key_norm_meta(settings: dict) -> dict:
+    """The key normaliser's settings a snapshot records and must match, from a config (as a dict) or a
+    snapshot's meta (written before the option: none). With 'running' its growth and floor decide when
+    the frozen map changes, so a WAL replayed on top of the snapshot must use the same ones."""
+    if settings.get("key_normalisation", "none") == "none":
         return {"key_normalisation": "none"}
-    return {"key_normalisation": mode, "key_norm_growth": float(get("key_norm_growth", 0.0)),
-            "key_norm_min_std": float(get("key_norm_min_std", 0.0))}
+    return {k: settings.get(k) for k in ("key_normalisation", "key_norm_growth", "key_norm_min_std")}
