@@ -13,9 +13,10 @@ from test_memory_node import client_of, start  # noqa: F401 - client_of is a fix
 from memory_worker import make_batch
 
 N, CHUNK = 8192, 256
+RID = 0x5EED_1234_5678   # the killed store's request id, re-sent to the restarted node
 
 
-def store_while_polling(storer, poller, batch, stop_when=None):
+def store_while_polling(storer, poller, batch, stop_when=None, request_id=None):
     """Store `batch` in a thread while `poller` asks for stats; (reply or exception, transitions_stored
     seen by each stats answer that arrived while the store was unanswered). stop_when(seen): stop
     polling and return at once when it says so."""
@@ -23,7 +24,7 @@ def store_while_polling(storer, poller, batch, stop_when=None):
 
     def store():
         try:
-            out["reply"] = storer.store(batch, timeout=120.0)
+            out["reply"] = storer.store(batch, timeout=120.0, request_id=request_id)
         except Exception as exc:  # noqa: BLE001 - reported by the caller
             out["reply"] = exc
     th = threading.Thread(target=store, daemon=True)
@@ -78,7 +79,7 @@ def test_sigkill_in_the_middle_of_a_large_store_leaves_a_state_the_node_starts_f
             proc.kill(signal.SIGKILL)
             return True
         return False
-    reply, seen = store_while_polling(storer, poller, batch, stop_when=kill_when_partial)
+    reply, seen = store_while_polling(storer, poller, batch, stop_when=kill_when_partial, request_id=RID)
     assert stored_before_kill, f"the store ended before any answer between chunks: {seen}"
     assert not hasattr(reply, "stored"), "the killed node acknowledged the store"
 
@@ -88,9 +89,14 @@ def test_sigkill_in_the_middle_of_a_large_store_leaves_a_state_the_node_starts_f
     # every chunk applied before the kill was logged first (flush); a torn last record is dropped
     assert stored_before_kill[0] <= s["transitions_stored"] < N and s["transitions_stored"] % CHUNK == 0
     assert s["identities"] == s["transitions_stored"]
-    r = memory.store(batch)   # the client re-sends the unanswered batch: the stored chunks are joined
-    assert r.new_identities == N - s["transitions_stored"]
+    # the client re-sends the unanswered batch with its request id: the chunks left are applied, the
+    # stored ones are not applied again, and the answer is the whole batch's
+    r = memory.store(batch, request_id=RID)
+    assert r.new_identities == N and r.stored == N
     np.testing.assert_array_equal(r.identity_ids, np.arange(N, dtype=np.uint64))
+    assert memory.stats()["transitions_stored"] == N
+    r = memory.store(batch)   # a new request id: the same transitions are stored again, joining their sets
+    assert r.new_identities == 0 and memory.stats()["transitions_stored"] == 2 * N
     proc2.kill(signal.SIGTERM)
     assert proc2.proc.returncode == 0, proc2.log()
 

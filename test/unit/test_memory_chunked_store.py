@@ -182,3 +182,87 @@ def test_a_resent_store_is_not_held_back_by_the_rate_limiter():
     with pytest.raises(RateLimited):
         mem.store(make(np.random.default_rng(3), 10))
     assert mem.begin_store(t, request_id=5).repeated    # the re-send is answered, not held back
+
+
+def test_remembered_answers_survive_a_restart_through_the_log_and_the_snapshot(tmp_path):
+    for every in (0, 2):   # 0: the WAL alone; 2: checkpoints between the stores, the snapshot holds them
+        cfg = MemoryConfig(storage_dir=str(tmp_path / f"s{every}"), snapshot_every=every, resend_window=10_000)
+        mem = CompactMemory(cfg)
+        t = make(np.random.default_rng(1), 60)
+        first = mem.store(t, request_id=11)
+        big = big_batch(n=700, restores=100)
+        op = mem.begin_store(big, 256, request_id=12)
+        mem.store(make(np.random.default_rng(2), 5), request_id=13)    # another client between chunks
+        mem.reduce(max_sets=20)
+        whole = op.result()
+        live = state_of(mem)
+        mem.close()
+
+        again = CompactMemory(cfg)
+        assert_same(state_of(again), live)                             # the answers are part of the state
+        for rid, batch, answer in ((11, t, first), (12, big, whole)):
+            resent = again.begin_store(batch, 256, request_id=rid)
+            assert resent.repeated and resent.done
+            np.testing.assert_array_equal(resent.result().identity_ids, answer.identity_ids)
+        assert again.stats()["transitions_stored"] == live[2]["transitions_stored"]
+        again.close()
+
+
+def test_a_batch_cut_short_by_a_kill_is_completed_once_by_its_resend(tmp_path):
+    live_dir, killed_dir = tmp_path / "live", tmp_path / "killed"
+    cfg = MemoryConfig(storage_dir=str(live_dir), snapshot_every=3)   # checkpoints between chunks too
+    mem = CompactMemory(cfg)
+    mem.store(make(np.random.default_rng(1), 50))
+    t = big_batch(n=1800, restores=200)
+    op = mem.begin_store(t, 250, request_id=21)
+    for i in range(3):
+        op.step()
+        mem.store(make(np.random.default_rng(10 + i), 5))
+        mem.reduce(max_sets=100)
+    shutil.copytree(live_dir, killed_dir)          # a kill after 4 of the 8 chunks
+    whole = op.result()
+    live = state_of(mem)
+    mem.close()
+
+    killed = CompactMemory(MemoryConfig(storage_dir=str(killed_dir), snapshot_every=3))
+    assert killed.stats()["transitions_stored"] == 50 + 4 * 250 + 3 * 5
+    with pytest.raises(MemoryInputError, match="request id 21 was a batch of 2000 transitions, 1000 of them"):
+        killed.begin_store(t.take(slice(0, 1999)), 250, request_id=21)
+    assert killed.stats()["transitions_stored"] == 50 + 4 * 250 + 3 * 5
+    resent = killed.begin_store(t, 250, request_id=21)   # the client re-sends the unanswered batch
+    assert resent.repeated
+    r = resent.result()
+    # the chunks left are applied from the re-send, the stored ones not again: the memory the kill interrupted
+    np.testing.assert_array_equal(r.identity_ids, whole.identity_ids)
+    assert (r.new_identities, r.similarity_hits) == (whole.new_identities, whole.similarity_hits)
+    assert_same(state_of(killed), live)
+    assert killed.begin_store(t, request_id=21).repeated
+    killed.close()
+
+
+def test_a_restored_snapshot_brings_its_own_answers(tmp_path):
+    mem = CompactMemory(MemoryConfig(storage_dir=str(tmp_path / "s"), snapshot_every=0))
+    before, after = make(np.random.default_rng(1), 30), make(np.random.default_rng(2), 30)
+    mem.store(before, request_id=31)
+    mem.save_snapshot(str(tmp_path / "named"))
+    mem.store(after, request_id=32)
+    mem.load_snapshot(str(tmp_path / "named"))
+    assert mem.begin_store(before, request_id=31).repeated       # in the restored state: answered
+    assert not mem.begin_store(after, request_id=32).repeated    # not in it: applied
+    assert mem.stats()["transitions_stored"] == 60
+    mem.close()
+
+
+def test_a_snapshot_with_a_damaged_answer_table_is_refused(tmp_path):
+    from comper_memory.core import storage as st
+    mem = CompactMemory(MemoryConfig())
+    mem.store(make(np.random.default_rng(1), 30), request_id=41)
+    mem.save_snapshot(str(tmp_path / "good"))
+    arrays, meta = st.read_snapshot(str(tmp_path / "good"))
+    assert arrays["resend_requests"].tolist() == [[41, 30, 30, 30, 0, 0, 1]]   # id, n, applied, new, hits, evicted, sequence
+    arrays["resend_requests"][0, 2] = 29                          # applied no longer matches the ids
+    st.write_snapshot(str(tmp_path / "bad"), arrays, meta)
+    other = CompactMemory(MemoryConfig())
+    with pytest.raises(st.SnapshotError, match="resend arrays"):
+        other.load_snapshot(str(tmp_path / "bad"))
+    assert other.stats()["identities"] == 0

@@ -90,7 +90,9 @@ class MemoryConfig:
     resend_window: int = param(
         1_000_000, "transitions of store answers the memory remembers by the client's request id (oldest "
         "forgotten first; 8 bytes each): a store re-sent with the id of a remembered one is answered with that "
-        "answer and not applied again. 0 = none remembered (every store is applied). Not kept across restarts",
+        "answer and not applied again. 0 = none remembered (every store is applied). With storage_dir the answers "
+        "survive a restart (WAL and snapshots), and a batch a kill cut short between chunks is completed by its "
+        "re-send",
         deviation="not in the thesis (one process there)", minimum=0)
     snapshot_every: int = param(
         10_000, "write a snapshot and rotate the WAL every this many logged operations (0: never)",

@@ -124,32 +124,34 @@ class CompactMemory:
         with self._lock:
             rid = int(request_id)
             same = self.stores.known(rid)
-            if same is not None:
+            if same is not None and not same.needs_batch:
                 return same.repeat()
             self.tm.expire(self._clock)
             clean, keys = validate_store(t, self.config, self.schema, self.expected_key_size)
+            if same is not None:   # cut short by a restart: the rest of it, admitted when it was first sent
+                same.resume(clean, keys, chunk)
+                self.rate.inserted(same.n - same.applied)
+                same.step_locked()
+                return same.repeat()
             self.rate.check_insert(len(clean), self.slots.n_live)
             if self.schema is None:
                 self._init_schema(schema_of(clean))
             op = ChunkedStore(self, clean, keys, int(chunk) if chunk and chunk > 0 else len(clean), rid)
             op.step_locked()
             self.rate.inserted(len(clean))   # admitted whole: later chunks are not checked again
-            if op.done:
-                self.stores.finished(op)
-            else:
-                self.stores.started(op)
             return op
 
-    def _store_chunk(self, clean: Transitions, keys: np.ndarray) -> StoreResult:
-        """One logged store of a validated batch (the lock is held)."""
+    def _store_chunk(self, clean: Transitions, keys: np.ndarray, request: np.ndarray | None) -> StoreResult:
+        """One logged store of a validated batch (the lock is held); ``request``: [request id, offset of
+        this chunk, batch size] for a store whose answer is remembered, logged with it."""
         y, res = resolve_store(self.index, self.key_norm, keys)
         if self._durable is not None:
-            self._durable.append(self.wal_sequence + 1, st.WAL_STORE, t_to_arrays(clean))
+            record = t_to_arrays(clean)
+            if request is not None:
+                record["request"] = request
+            self._durable.append(self.wal_sequence + 1, st.WAL_STORE, record)
         self.wal_sequence += 1
-        out = self._apply_store(clean, y, res, keys)
-        if self._durable is not None:
-            self._durable.maybe_checkpoint()
-        return out
+        return self._apply_store(clean, y, res, keys)
 
     def _apply_store(self, t: Transitions, y: np.ndarray, res: ResolveResult, raw_keys: np.ndarray) -> StoreResult:
         n = len(t)
@@ -327,8 +329,7 @@ class CompactMemory:
             arrays, meta = st.read_snapshot(path)
             check_arrays(arrays)
             seq = self.wal_sequence
-            restore_state(self, arrays, meta)
-            self.stores.forget_answers()
+            restore_state(self, arrays, meta)   # the snapshot's remembered answers replace ours
             self.rate.recovered(self.slots.n_live)
             if self._durable is not None:
                 # the restore is an operation at the current log position: the new snapshot keeps

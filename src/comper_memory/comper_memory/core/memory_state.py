@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import storage as st
+from .chunked_store import check_registry
 from .durability import COUNTERS, arrays_to_t, check_counters
 from .key_norm import resolve_store
 from .validation import schema_of, validate_store
@@ -31,6 +32,7 @@ def state_arrays(mem: CompactMemory) -> tuple[dict[str, np.ndarray], dict]:
         mem.tm.snapshot_into(arrays)
         mem.rtm.snapshot_into(arrays)
         arrays.update(mem.key_norm.arrays())
+        arrays.update(mem.stores.arrays())
     c, sch = mem.config, mem.schema
     meta = {"schema": None if sch is None else
             {**sch, "obs_shape": list(sch["obs_shape"]), "action_shape": list(sch["action_shape"])},
@@ -55,9 +57,13 @@ def restore_state(mem: CompactMemory, arrays: dict[str, np.ndarray], meta: dict)
     if sch is not None and mem.expected_key_size is not None and sch["key_size"] != mem.expected_key_size:
         raise st.SnapshotError(f"snapshot key size {sch['key_size']} differs from {mem.expected_key_size}")
     check_counters(arrays, meta)
+    bad = check_registry(arrays)
+    if bad:
+        raise st.SnapshotError(f"snapshot {bad}")
     mem._reset_state()
     for k, v in meta["counters"].items():
         setattr(mem, k, int(v))
+    mem.stores.load(mem, arrays)
     if sch is None:
         return
     mem._init_schema({**sch, "obs_shape": tuple(sch["obs_shape"]), "action_shape": tuple(sch["action_shape"])})
@@ -77,7 +83,9 @@ def replay_record(mem: CompactMemory, seq: int, kind: int, arr: dict[str, np.nda
             mem._init_schema(schema_of(clean))
         y, res = resolve_store(mem.index, mem.key_norm, keys)
         mem.wal_sequence = seq
-        mem._apply_store(clean, y, res, keys)
+        part = mem._apply_store(clean, y, res, keys)
+        if "request" in arr:   # a chunk of a store whose answer the memory remembers
+            mem.stores.replayed(mem, arr["request"], part)
     elif kind == st.WAL_COMMIT:
         mem.wal_sequence = seq
         mem.next_reduction_id += 1
