@@ -99,19 +99,27 @@ def test_rate_limiter_admits_or_holds_the_whole_batch():
     assert mem.stats()["transitions_stored"] == 1410
 
 
-def test_log_replays_interleaved_chunks_and_a_kill_between_chunks_leaves_a_startable_state(tmp_path):
+def killed_mid_store(tmp_path, request_id=0):
+    """A persistent memory with 50 transitions, then a 2,000-transition store in chunks of 250 with other
+    clients' stores and reductions between its chunks; after 4 chunks, a kill: a copy of the storage as it
+    is on disk (flush durability: every record is written). (cfg, mem, op, batch, killed_dir); the live
+    memory and its store go on."""
     live_dir, killed_dir = tmp_path / "live", tmp_path / "killed"
     cfg = MemoryConfig(storage_dir=str(live_dir), snapshot_every=3)   # checkpoints between chunks too
     mem = CompactMemory(cfg)
     mem.store(make(np.random.default_rng(1), 50))
     t = big_batch(n=1800, restores=200)
-    op = mem.begin_store(t, 250)
+    op = mem.begin_store(t, 250, request_id=request_id)
     for i in range(3):
         op.step()
         mem.store(make(np.random.default_rng(10 + i), 5))       # other clients between chunks
         mem.reduce(max_sets=100)
-    # a kill now: copy the storage as it is on disk (flush durability: every record is written)
     shutil.copytree(live_dir, killed_dir)
+    return cfg, mem, op, t, killed_dir
+
+
+def test_log_replays_interleaved_chunks_and_a_kill_between_chunks_leaves_a_startable_state(tmp_path):
+    cfg, mem, op, t, killed_dir = killed_mid_store(tmp_path)
     partial = without_sequence(state_of(mem))
     op.result()
     live = state_of(mem)
@@ -209,17 +217,7 @@ def test_remembered_answers_survive_a_restart_through_the_log_and_the_snapshot(t
 
 
 def test_a_batch_cut_short_by_a_kill_is_completed_once_by_its_resend(tmp_path):
-    live_dir, killed_dir = tmp_path / "live", tmp_path / "killed"
-    cfg = MemoryConfig(storage_dir=str(live_dir), snapshot_every=3)   # checkpoints between chunks too
-    mem = CompactMemory(cfg)
-    mem.store(make(np.random.default_rng(1), 50))
-    t = big_batch(n=1800, restores=200)
-    op = mem.begin_store(t, 250, request_id=21)
-    for i in range(3):
-        op.step()
-        mem.store(make(np.random.default_rng(10 + i), 5))
-        mem.reduce(max_sets=100)
-    shutil.copytree(live_dir, killed_dir)          # a kill after 4 of the 8 chunks
+    cfg, mem, op, t, killed_dir = killed_mid_store(tmp_path, request_id=21)   # a kill after 4 of the 8 chunks
     whole = op.result()
     live = state_of(mem)
     mem.close()
