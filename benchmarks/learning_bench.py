@@ -55,6 +55,10 @@ def parse_args(argv=None):
     ap.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (thesis: 10)")
     ap.add_argument("--report-steps", type=int, nargs="+", default=[10_000, 25_000, 50_000],
                     help="steps at which the table reports the evaluation return (nearest evaluation at or before)")
+    ap.add_argument("--final-evals", type=int, default=3,
+                    help="the table's last column: each run's mean over its last this many evaluations on the "
+                         "eval_every grid (3: 40,000, 45,000 and 50,000 of a 50,000-step run), less noisy than the "
+                         "single evaluation at the end (0: no column)")
     ap.add_argument("--parallel", type=int, default=2, help="runs at a time (the machine has 2 cores)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "learning"), help="output folder")
     ap.add_argument("--tag", default=time.strftime("%Y%m%d-%H%M%S"), help="sub-folder of --out for this sweep")
@@ -228,6 +232,16 @@ def run_all(args, base: Path) -> None:
     print(f"[bench] all runs finished in {time.monotonic() - t_start:.0f} s", flush=True)
 
 
+def final_mean(evals, every: int, total: int, k: int) -> float | None:
+    """A run's mean evaluation return over the last k grid points up to ``total`` (every one of them
+    evaluated), or None if it lacks one (a run ended early)."""
+    want = [total // every * every - i * every for i in range(k)]
+    got = {st: r for st, r in on_grid(evals, every)}
+    if k <= 0 or min(want) < 0 or any(w not in got for w in want):
+        return None
+    return sum(got[w] for w in want) / k
+
+
 def at_step(evals, step):
     cands = [e for e in evals if e["step"] <= step]
     return cands[-1] if cands else None
@@ -277,9 +291,13 @@ def report(args, base: Path) -> dict:
     args.tasks, args.algorithms = tasks, algorithms
     steps = [x for x in args.report_steps if x <= args.total_steps] or [args.total_steps]
     reached_col = args.target is not None
+    k_final = args.final_evals
+    final_head = (f" | last {k_final} evals ({args.total_steps - (k_final - 1) * args.eval_every:,}-"
+                  f"{args.total_steps:,}) [95% CI]" if k_final > 0 else "")
     lines = [f"| task | algorithm | seeds | " + " | ".join(f"return @ {x:,} [95% CI]" for x in steps)
-             + (f" | reached {args.target:g} | best eval" if reached_col else "") + " | steps/s |",
-             "|---|---|---|" + "---|" * len(steps) + ("---|---|" if reached_col else "") + "---|"]
+             + final_head + (f" | reached {args.target:g} | best eval" if reached_col else "") + " | steps/s |",
+             "|---|---|---|" + "---|" * len(steps) + ("---|" if k_final > 0 else "")
+             + ("---|---|" if reached_col else "") + "---|"]
     for t in args.tasks:
         for a in args.algorithms:
             runs = [r for r in results["runs"].values() if r["task"] == t and r["algorithm"] == a and r["evals"]]
@@ -298,6 +316,16 @@ def report(args, base: Path) -> dict:
                                    "ci95": [lo, hi], "values": [float(v) for v in vals]}
                 else:
                     cells.append("-")
+            if k_final > 0:
+                vals = [v for v in (final_mean(r["evals"], args.eval_every, args.total_steps, k_final)
+                                    for r in runs) if v is not None]
+                if vals:
+                    lo, hi = bootstrap_ci(vals)
+                    cells.append(f"{np.mean(vals):.1f} [{lo:.1f}, {hi:.1f}] (n={len(vals)})")
+                    row["final"] = {"evals": k_final, "mean": float(np.mean(vals)), "n": len(vals),
+                                    "ci95": [lo, hi], "values": vals}
+                else:
+                    cells.append("-")
             if reached_col:
                 best = [max(e[1] for e in r["evals"]) for r in runs]
                 row["reached"] = int(sum(b >= args.target for b in best))
@@ -313,7 +341,8 @@ def report(args, base: Path) -> dict:
           f"{args.total_steps:,} steps per run, evaluation every {args.eval_every:,} steps "
           f"({args.eval_episodes} greedy episodes), mean over seeds of the per-run mean evaluation return with "
           "a bootstrap 95% confidence interval of that mean (10,000 resamples of the seeds; with 3 seeds it "
-          "spans the seeds' range at most); steps/s = the whole run including evaluations (sb3_ddpg: "
+          "spans the seeds' range at most); last k evals: the same statistic of each run's mean over its last k "
+          "evaluations (--final-evals); steps/s = the whole run including evaluations (sb3_ddpg: "
           "Stable-Baselines3 DDPG, default settings, in-process gymnasium env, no ROS).", "",
           *[f"- {k}: {v['algorithm']} with " + ", ".join(f"{pk}:={pv}" for pk, pv in v["params"].items())
             for k, v in results["variants"].items()], "", *lines, "",
