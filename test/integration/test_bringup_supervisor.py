@@ -132,17 +132,18 @@ def test_the_nodes_stop_when_the_supervisor_itself_is_killed(bringup, tmp_path):
     b = bringup("orphan", "-p", "algorithm:=ddpg", "-p", "total_steps:=100000", "-p", "eval_every:=0")
     b.wait_for(rf"^\[{LEARNER}\] .*step \d+/100000")
     log = b.log()
-    pids = [int(re.search(rf"^\[bringup\] started {name} \(pid (\d+)\)", log, re.M).group(1))
-            for name in (NAMES["sim_node"], LEARNER)]
+    pids = {int(re.search(rf"^\[bringup\] started {name} \(pid (\d+)\)", log, re.M).group(1)): name
+            for name in (NAMES["sim_node"], LEARNER)}
     os.kill(b.proc.pid, signal.SIGKILL)           # the supervisor only: its children are in their own sessions
     b.proc.wait()
     deadline = time.monotonic() + 120
-    alive = pids
+    alive = list(pids)
     while alive and time.monotonic() < deadline:
         alive = [p for p in alive if _running(p)]
         time.sleep(0.5)
     # the kernel signals every child at once here (no learner-first order), so a final checkpoint is not promised
-    assert not alive, f"still running after the supervisor was killed: {alive}"
+    assert not alive, (f"still running after the supervisor was killed: {[(p, pids[p]) for p in alive]}\n"
+                       + b.log()[-5000:])
 
 
 def _running(pid) -> bool:
