@@ -176,6 +176,10 @@ class AgentNode(Node):
         p = self.p
         sim = p.sim_node.strip("/")
         self.sim = SimClient(self, f"/{sim}", timeout=p.service_timeout_s)
+        # after a stop request a call whose server has gone (its bring-up stopping with this node) ends at
+        # once instead of waiting out service_timeout_s
+        for c in (self.sim, *((self.mem.memory, self.mem.reduction) if self.mem is not None else ())):
+            c.stop = self.stop_event
         services = {"sim": self.sim.step_client(), **(self.mem.services() if self.mem is not None else {})}
         hints = {"sim": START_HINTS["sim"].format(name=sim),
                  "memory": START_HINTS["memory"].format(name=p.memory_node),

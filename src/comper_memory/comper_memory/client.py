@@ -288,7 +288,8 @@ class ReductionClient(ServiceClient):
 
     def reply(self, pending: PendingCall, timeout: float | None = None) -> ReduceReply:
         """The answer of a reduction started by :meth:`send`."""
-        return ReduceReply.from_response(pending.result(self.timeout if timeout is None else float(timeout)))
+        wait = self.timeout if timeout is None else float(timeout)
+        return ReduceReply.from_response(pending.result(wait, stop=self.stop))
 
     def reduce(self, max_sets: int = 0, epochs: int = 0, *, timeout: float | None = None) -> ReduceReply:
         """One blocking reduction."""

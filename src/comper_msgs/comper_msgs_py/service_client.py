@@ -77,11 +77,23 @@ class PendingCall:
     def done(self) -> bool:
         return self._done.is_set()
 
-    def result(self, timeout: float = 60.0, *, check: bool = True):
+    #: after a stop request, how long the server may be missing from the graph before the wait ends
+    GONE_S = 1.0
+
+    def result(self, timeout: float = 60.0, *, check: bool = True, stop: threading.Event | None = None):
         """The response. ServiceTimeout on timeout or cancellation, ServiceError when the call raised,
-        ServiceRefused (check) when the response says success false."""
+        ServiceRefused (check) when the response says success false. stop: once it is set, the wait ends
+        with ServiceUnavailable as soon as the server has been gone from the graph for GONE_S (a node
+        stopping on SIGTERM whose servers stop with it does not wait out a long timeout); while the
+        server is there the wait goes on as before (a final checkpoint still gets its answers)."""
         name, future = self.name, self.future
-        if not self._done.wait(timeout):
+        try:
+            answered = self._wait(timeout, stop)
+        except ServiceUnavailable:
+            self.client.remove_pending_request(future)
+            future.cancel()
+            raise
+        if not answered:
             self.client.remove_pending_request(future)
             future.cancel()
             raise NoAnswer(f"{name}: no answer within {timeout:g} s (is the node still running?)")
@@ -96,6 +108,25 @@ class PendingCall:
         if check and getattr(response, "success", True) is False:
             raise self.refused(name, response.message)
         return response
+
+
+    def _wait(self, timeout: float, stop: threading.Event | None) -> bool:
+        if stop is None:
+            return self._done.wait(timeout)
+        deadline, gone_since = time.monotonic() + timeout, None
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            if self._done.wait(min(left, 0.2)):
+                return True
+            if not stop.is_set() or self.client.service_is_ready():
+                gone_since = None
+            elif gone_since is None:
+                gone_since = time.monotonic()
+            elif time.monotonic() - gone_since >= self.GONE_S:
+                raise ServiceUnavailable(f"{self.name}: the server left while this call waited for its answer, "
+                                         "after a stop was requested")
 
 
 def call(client, request, timeout: float = 60.0, *, what: str | None = None, check: bool = True):
@@ -147,6 +178,9 @@ class ServiceClient:
         self._group = callback_group
         self._clients: list = []
         self.resent = 0      # requests sent again because their answer did not come (_call's resend_s)
+        #: a node's stop request (e.g. its SIGTERM handler's event): once set, a call whose server has left
+        #: the graph ends at once (PendingCall.result) instead of waiting out its timeout
+        self.stop: threading.Event | None = None
         self._owned = None   # (own context or None, executor, thread) of a standalone client
 
     def _make(self, srv_type, name: str):
@@ -237,14 +271,14 @@ class ServiceClient:
         one is answered or ``timeout`` is over. ``self.resent`` counts the repetitions."""
         timeout = self.timeout if timeout is None else float(timeout)
         if not resend_s or resend_s <= 0 or resend_s >= timeout:
-            return self._send(client, request).result(timeout, check=check)
+            return self._send(client, request).result(timeout, check=check, stop=self.stop)
         deadline = time.monotonic() + timeout
         sent = 0
         while True:
             left = deadline - time.monotonic()
             try:
                 sent += 1
-                return self._send(client, request).result(max(0.0, min(resend_s, left)), check=check)
+                return self._send(client, request).result(max(0.0, min(resend_s, left)), check=check, stop=self.stop)
             except NoAnswer:
                 if deadline - time.monotonic() <= 0.0:
                     raise NoAnswer(f"{client.srv_name}: no answer within {timeout:g} s (sent {sent} times, "
