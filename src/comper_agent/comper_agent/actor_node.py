@@ -78,6 +78,7 @@ class ActorNode(Node):
         self.spinner = Spinner([self], self.context).start()
         # short rate-limit waits, retried in _store: a held-back store still sees Ctrl-C and the final message
         self.memory = MemoryClient(self, p.memory_node, timeout=p.service_timeout_s, rate_limit_timeout=1.0)
+        self.memory.stop = self.stop_event   # stopping: a store to a memory node that has gone ends at once
         self.final_seen = threading.Event()
         self.dropped = 0
         self.run_id = f"actor{p.actor_id}"
