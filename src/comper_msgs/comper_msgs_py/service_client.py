@@ -88,15 +88,12 @@ class PendingCall:
         server is there the wait goes on as before (a final checkpoint still gets its answers)."""
         name, future = self.name, self.future
         try:
-            answered = self._wait(timeout, stop)
-        except ServiceUnavailable:
+            if not self._wait(timeout, stop):
+                raise NoAnswer(f"{name}: no answer within {timeout:g} s (is the node still running?)")
+        except (NoAnswer, ServiceUnavailable):
             self.client.remove_pending_request(future)
             future.cancel()
             raise
-        if not answered:
-            self.client.remove_pending_request(future)
-            future.cancel()
-            raise NoAnswer(f"{name}: no answer within {timeout:g} s (is the node still running?)")
         if future.cancelled():
             raise ServiceTimeout(f"{name}: the call was cancelled (shutting down?)")
         exc = future.exception()
@@ -108,7 +105,6 @@ class PendingCall:
         if check and getattr(response, "success", True) is False:
             raise self.refused(name, response.message)
         return response
-
 
     def _wait(self, timeout: float, stop: threading.Event | None) -> bool:
         if stop is None:

@@ -146,7 +146,7 @@ class _Repeated:
 #: identities, similarity hits, evicted, last WAL sequence), oldest answer first, then the stores cut
 #: short; and the identity ids of the applied transitions of every row, concatenated in that order
 _REQUEST_COLUMNS = 7
-REGISTRY_ARRAYS = ("resend_requests", "resend_identity_ids")
+_ROWS, _IDS = REGISTRY_ARRAYS = ("resend_requests", "resend_identity_ids")
 
 
 class StoreRegistry:
@@ -181,7 +181,7 @@ class StoreRegistry:
         if op.done:
             self._finished(op)
             return
-        if op._t is not None:
+        if not op.needs_batch:
             self._in_progress.add(op)
         if self.tracks(op.request_id):
             self._pending_ids[op.request_id] = op
@@ -209,11 +209,16 @@ class StoreRegistry:
             return
         op = self._pending_ids.get(rid)
         if op is None and offset == 0:
-            op = ChunkedStore(memory, None, None, len(part.identity_ids), rid, n=n)
-        if op is None or op.applied != offset or op.n != n:   # the log and the snapshot disagree: forget it
+            self._recovered(memory, rid, n, part)
+        elif op is None or op.applied != offset or op.n != n:   # the log and the snapshot disagree: forget it
             self._pending_ids.pop(rid, None)
-            return
-        op.chunk_applied(part)
+        else:
+            op.chunk_applied(part)
+
+    def _recovered(self, memory: CompactMemory, rid: int, n: int, part: StoreResult) -> None:
+        """A store of n transitions known from the WAL or a snapshot, ``part`` of it applied: remembered if
+        whole, else waiting for its client's re-send (:attr:`ChunkedStore.needs_batch`)."""
+        ChunkedStore(memory, None, None, len(part.identity_ids), rid, n=n).chunk_applied(part)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The registry as a snapshot holds it (REGISTRY_ARRAYS)."""
@@ -225,29 +230,27 @@ class StoreRegistry:
             rows[i] = (op.request_id, op.n, op.applied, r.new_identities, r.similarity_hits, r.evicted,
                        r.wal_sequence)
             ids.append(r.identity_ids)
-        return {"resend_requests": rows,
-                "resend_identity_ids": np.concatenate(ids).astype(np.int64) if ids else np.zeros(0, np.int64)}
+        return {_ROWS: rows, _IDS: np.concatenate(ids).astype(np.int64) if ids else np.zeros(0, np.int64)}
 
     def load(self, memory: CompactMemory, arrays: dict[str, np.ndarray]) -> None:
         """Replace the answers by a snapshot's (none in a snapshot written before they were kept); the
         caller has checked them (:func:`check_registry`). Stores in progress here are not touched."""
         self._answers.clear()
         self._answers_size = 0
-        self._pending_ids = {rid: op for rid, op in self._pending_ids.items() if op._t is not None}
-        rows = arrays.get("resend_requests", np.zeros((0, _REQUEST_COLUMNS), np.int64))
-        ids = arrays.get("resend_identity_ids", np.zeros(0, np.int64))
+        self._pending_ids = {rid: op for rid, op in self._pending_ids.items() if not op.needs_batch}
+        rows = arrays.get(_ROWS, np.zeros((0, _REQUEST_COLUMNS), np.int64))
+        ids = arrays.get(_IDS, np.zeros(0, np.int64))
         at = 0
         for rid, n, applied, new, hits, evicted, seq in rows.tolist():
             part = StoreResult(ids[at:at + applied].copy(), new, hits, evicted, seq)
             at += applied
             if self.tracks(rid):
-                ChunkedStore(memory, None, None, applied, rid, n=n).chunk_applied(part)
+                self._recovered(memory, rid, n, part)
 
 
 def check_registry(arrays: dict[str, np.ndarray]) -> str | None:
     """What is wrong with a snapshot's registry arrays, or None."""
-    rows = arrays.get("resend_requests")
-    ids = arrays.get("resend_identity_ids")
+    rows, ids = arrays.get(_ROWS), arrays.get(_IDS)
     if rows is None and ids is None:
         return None
     if rows is None or ids is None or rows.ndim != 2 or rows.shape[1] != _REQUEST_COLUMNS:
