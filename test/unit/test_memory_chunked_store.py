@@ -238,6 +238,24 @@ def test_a_batch_cut_short_by_a_kill_is_completed_once_by_its_resend(tmp_path):
     killed.close()
 
 
+def test_a_batch_cut_short_and_never_resent_is_forgotten_like_an_old_answer(tmp_path):
+    _, mem, _, t, killed_dir = killed_mid_store(tmp_path, request_id=21)
+    mem.close()
+    killed = CompactMemory(MemoryConfig(storage_dir=str(killed_dir), snapshot_every=3, resend_window=100))
+    stored = killed.stats()["transitions_stored"]
+    assert killed.stores.known(21).needs_batch
+    killed.store(make(np.random.default_rng(5), 60), request_id=50)   # 60 newer answers: still waiting
+    assert killed.stores.known(21) is not None
+    killed.store(make(np.random.default_rng(6), 60), request_id=51)   # 120 > resend_window: forgotten
+    assert killed.stores.known(21) is None
+    assert 21 not in killed.stores.arrays()["resend_requests"][:, 0]   # nor kept by the next snapshot
+    late = killed.begin_store(t, 250, request_id=21)                  # a re-send now is a new store
+    assert not late.repeated
+    late.result()
+    assert killed.stats()["transitions_stored"] == stored + 120 + 2000
+    killed.close()
+
+
 def test_a_restored_snapshot_brings_its_own_answers(tmp_path):
     mem = CompactMemory(MemoryConfig(storage_dir=str(tmp_path / "s"), snapshot_every=0))
     before, after = make(np.random.default_rng(1), 30), make(np.random.default_rng(2), 30)

@@ -151,7 +151,11 @@ _ROWS, _IDS = REGISTRY_ARRAYS = ("resend_requests", "resend_identity_ids")
 
 class StoreRegistry:
     """Stores in progress, and finished stores' answers by request id (oldest first, at most
-    ``resend_window`` transitions of them, but always the newest one); 0 turns ids off."""
+    ``resend_window`` transitions of them, but always the newest one); 0 turns ids off.
+
+    A store a restart cut short (:attr:`ChunkedStore.needs_batch`) waits for its client's re-send
+    until ``resend_window`` transitions of other stores have finished after its recovery; then it is
+    forgotten like an old answer (a later re-send is applied as a new store)."""
 
     def __init__(self, resend_window: int):
         self.resend_window = int(resend_window)
@@ -159,6 +163,8 @@ class StoreRegistry:
         self._pending_ids: dict[int, ChunkedStore] = {}           # in progress, by request id
         self._answers: OrderedDict[int, ChunkedStore] = OrderedDict()   # finished, by request id
         self._answers_size = 0                                    # transitions of the answers
+        self._finished_total = 0                                  # transitions of stores finished here
+        self._cut_short: dict[int, int] = {}                      # needs_batch id -> _finished_total then
 
     def tracks(self, rid: int) -> bool:
         return rid > 0 and self.resend_window > 0
@@ -185,6 +191,8 @@ class StoreRegistry:
             self._in_progress.add(op)
         if self.tracks(op.request_id):
             self._pending_ids[op.request_id] = op
+            if op.needs_batch:
+                self._cut_short.setdefault(op.request_id, self._finished_total)
 
     def _finished(self, op: ChunkedStore) -> None:
         """``op`` is fully applied: remember its answer by its request id."""
@@ -193,11 +201,17 @@ class StoreRegistry:
         if not self.tracks(rid):
             return
         self._pending_ids.pop(rid, None)
+        self._cut_short.pop(rid, None)
         self._answers[rid] = op
         self._answers_size += op.n
+        self._finished_total += op.n
         while self._answers_size > self.resend_window and len(self._answers) > 1:
             _, old = self._answers.popitem(last=False)
             self._answers_size -= old.n
+        for old_rid in [r for r, at in self._cut_short.items() if self._finished_total - at > self.resend_window]:
+            del self._cut_short[old_rid]
+            if self._pending_ids[old_rid].needs_batch:   # never re-sent: forgotten, as an answer this old would be
+                del self._pending_ids[old_rid]
 
     def any_in_progress(self) -> bool:
         return any(not op.done for op in self._in_progress)
@@ -212,6 +226,7 @@ class StoreRegistry:
             self._recovered(memory, rid, n, part)
         elif op is None or op.applied != offset or op.n != n:   # the log and the snapshot disagree: forget it
             self._pending_ids.pop(rid, None)
+            self._cut_short.pop(rid, None)
         else:
             op.chunk_applied(part)
 
@@ -238,6 +253,7 @@ class StoreRegistry:
         self._answers.clear()
         self._answers_size = 0
         self._pending_ids = {rid: op for rid, op in self._pending_ids.items() if not op.needs_batch}
+        self._cut_short.clear()
         rows = arrays.get(_ROWS, np.zeros((0, _REQUEST_COLUMNS), np.int64))
         ids = arrays.get(_IDS, np.zeros(0, np.int64))
         at = 0

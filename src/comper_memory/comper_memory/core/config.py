@@ -92,7 +92,7 @@ class MemoryConfig:
         "forgotten first; 8 bytes each): a store re-sent with the id of a remembered one is answered with that "
         "answer and not applied again. 0 = none remembered (every store is applied). With storage_dir the answers "
         "survive a restart (WAL and snapshots), and a batch a kill cut short between chunks is completed by its "
-        "re-send",
+        "re-send (waited for until resend_window transitions of newer answers are remembered, then forgotten)",
         deviation="not in the thesis (one process there)", minimum=0)
     snapshot_every: int = param(
         10_000, "write a snapshot and rotate the WAL every this many logged operations (0: never)",
