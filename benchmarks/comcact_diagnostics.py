@@ -8,7 +8,8 @@ Reads the 'qt_diagnostics' records comcact_node writes to <run dir>/metrics.json
   2. the mean label age of the sampled RTM entries (steps since their representative was stored);
   3. the mean sampled set size and the fraction of sampled entries with more than one member.
 It also prints, per run, the medians over the second half of the run (the issue's target compares
-qt_target_rmse with critic_td_rmse there).
+qt_target_rmse with critic_td_rmse there), and from the last 'progress' record how many QT critic steps the
+run took and how many `qt_step_gate` skipped.
 
     python benchmarks/comcact_diagnostics.py runs/comcact-Hopper-v4-s0-* --out docs/results/comcact_diagnostics.png
 """
@@ -33,6 +34,19 @@ def read(run: Path) -> list[dict]:
     return out
 
 
+def qt_step_counts(run: Path) -> dict | None:
+    """The last progress record's learner_updates, qt_steps_taken and qt_steps_gated (None before they were
+    written)."""
+    last = None
+    with open(run / "metrics.jsonl") as f:
+        for line in f:
+            if '"qt_steps_taken"' in line:
+                last = json.loads(line)
+    if last is None:
+        return None
+    return {k: int(last[k]) for k in ("learner_updates", "qt_steps_taken", "qt_steps_gated")}
+
+
 def second_half_medians(recs: list[dict]) -> dict:
     if not recs:
         return {}
@@ -47,7 +61,8 @@ def main(argv=None) -> int:
     ap.add_argument("runs", nargs="+", type=Path, help="run directories of comcact_node")
     ap.add_argument("--out", type=Path, default=Path("comcact_diagnostics.png"), help="the figure to write")
     args = ap.parse_args(argv)
-    data = {r.name: read(r) for r in args.runs if (r / "metrics.jsonl").exists()}
+    runs = {r.name: r for r in args.runs if (r / "metrics.jsonl").exists()}
+    data = {name: read(r) for name, r in runs.items()}
     data = {k: v for k, v in data.items() if v}
     if not data:
         print("no qt_diagnostics records in these runs (comcact_node with diagnostics_every > 0)", file=sys.stderr)
@@ -67,6 +82,10 @@ def main(argv=None) -> int:
                      label=f"{name}: fraction with > 1 member")
         med = second_half_medians(recs)
         print(f"{name}: second half medians " + ", ".join(f"{k} {v:.3g}" for k, v in med.items()))
+        counts = qt_step_counts(runs[name])
+        if counts:
+            print(f"{name}: {counts['qt_steps_taken']} QT steps in {counts['learner_updates']} updates, "
+                  f"{counts['qt_steps_gated']} skipped by qt_step_gate")
     axes[0].set(title="RMS distance on the update's batch", xlabel="agent step", yscale="log")
     axes[1].set(title="label age of sampled RTM entries (steps)", xlabel="agent step")
     axes[2].set(title="sampled set sizes", xlabel="agent step")

@@ -76,6 +76,10 @@ def test_embedded_bringup_trains_publishes_and_stops_cleanly_on_ctrl_c(launch, r
     for d in diag:
         assert d["qt_target_rmse"] >= 0 and d["critic_td_rmse"] >= 0 and d["set_size_mean"] >= 1
         assert 0 <= d["multi_member_fraction"] <= 1 and 0 <= d["label_age_mean"] <= d["step"]
+    progress = [r for r in run_io.MetricsLog.read(run / "metrics.jsonl", "progress") if "qt_steps_taken" in r]
+    assert progress, "progress records carry the QT step counts"
+    last = progress[-1]    # gate off: every update after QT's first version took its QT step
+    assert last["qt_steps_gated"] == 0 and 0 < last["qt_steps_taken"] <= last["learner_updates"]
 
 
 def test_external_bringup_uses_nodes_started_with_ros2_run(launch, tmp_path):

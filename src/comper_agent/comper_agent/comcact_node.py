@@ -240,13 +240,16 @@ class ComcactNode(AgentNode):
                           f"outputs in {self.run_dir.path}")
 
     def _progress_line(self, line: str) -> None:
-        extra = ""
+        extra, counts = "", {}
         if self.comcact:
             extra = f" | RTM {self.rtm_size} | QT v{self.mem.qt_version}"
+            # so far in the run: QT critic steps taken, and those qt_step_gate skipped
+            counts = {"learner_updates": self.learner.updates, "qt_steps_taken": self.learner.qt_steps,
+                      "qt_steps_gated": self.learner.qt_gated}
         self.log.info(line + extra)
         self.metrics.write("progress", step=self.step, steps_per_s=self.progress.rate, episodes=self.env.count,
                            wall_time_s=self.wall_time(), rtm_size=self.rtm_size, **{
-                               k: v for k, v in self.last_update.items() if isinstance(v, float)})
+                               k: v for k, v in self.last_update.items() if isinstance(v, float)}, **counts)
         self.scalars.scalar("perf/steps_per_s", self.progress.rate, self.step)
 
     # ------------------------------------------------------------------------------ stepping
