@@ -210,7 +210,8 @@ class StoreRegistry:
             self._answers_size -= old.n
         for old_rid in [r for r, at in self._cut_short.items() if self._finished_total - at > self.resend_window]:
             del self._cut_short[old_rid]
-            if self._pending_ids[old_rid].needs_batch:   # never re-sent: forgotten, as an answer this old would be
+            op_left = self._pending_ids.get(old_rid)
+            if op_left is not None and op_left.needs_batch:   # never re-sent: forgotten, as an answer this old would be
                 del self._pending_ids[old_rid]
 
     def any_in_progress(self) -> bool:
