@@ -48,6 +48,8 @@ class ChunkedStore:
         self.request_id = int(request_id)
         self.applied = 0
         self._parts: list[StoreResult] = []
+        #: for a store recovered part-applied (needs_batch): the registry's finished transitions at its recovery
+        self.recovered_at: int | None = None
 
     @property
     def needs_batch(self) -> bool:
@@ -164,7 +166,6 @@ class StoreRegistry:
         self._answers: OrderedDict[int, ChunkedStore] = OrderedDict()   # finished, by request id
         self._answers_size = 0                                    # transitions of the answers
         self._finished_total = 0                                  # transitions of stores finished here
-        self._cut_short: dict[int, int] = {}                      # needs_batch id -> _finished_total then
 
     def tracks(self, rid: int) -> bool:
         return rid > 0 and self.resend_window > 0
@@ -191,8 +192,8 @@ class StoreRegistry:
             self._in_progress.add(op)
         if self.tracks(op.request_id):
             self._pending_ids[op.request_id] = op
-            if op.needs_batch:
-                self._cut_short.setdefault(op.request_id, self._finished_total)
+            if op.needs_batch and op.recovered_at is None:
+                op.recovered_at = self._finished_total
 
     def _finished(self, op: ChunkedStore) -> None:
         """``op`` is fully applied: remember its answer by its request id."""
@@ -201,18 +202,15 @@ class StoreRegistry:
         if not self.tracks(rid):
             return
         self._pending_ids.pop(rid, None)
-        self._cut_short.pop(rid, None)
         self._answers[rid] = op
         self._answers_size += op.n
         self._finished_total += op.n
         while self._answers_size > self.resend_window and len(self._answers) > 1:
             _, old = self._answers.popitem(last=False)
             self._answers_size -= old.n
-        for old_rid in [r for r, at in self._cut_short.items() if self._finished_total - at > self.resend_window]:
-            del self._cut_short[old_rid]
-            op_left = self._pending_ids.get(old_rid)
-            if op_left is not None and op_left.needs_batch:   # never re-sent: forgotten, as an answer this old would be
-                del self._pending_ids[old_rid]
+        for old_rid in [r for r, p in self._pending_ids.items()   # cut short and never re-sent: forgotten, as an
+                        if p.needs_batch and self._finished_total - p.recovered_at > self.resend_window]:
+            del self._pending_ids[old_rid]                       # answer this old would be
 
     def any_in_progress(self) -> bool:
         return any(not op.done for op in self._in_progress)
@@ -227,7 +225,6 @@ class StoreRegistry:
             self._recovered(memory, rid, n, part)
         elif op is None or op.applied != offset or op.n != n:   # the log and the snapshot disagree: forget it
             self._pending_ids.pop(rid, None)
-            self._cut_short.pop(rid, None)
         else:
             op.chunk_applied(part)
 
@@ -254,7 +251,6 @@ class StoreRegistry:
         self._answers.clear()
         self._answers_size = 0
         self._pending_ids = {rid: op for rid, op in self._pending_ids.items() if not op.needs_batch}
-        self._cut_short.clear()
         rows = arrays.get(_ROWS, np.zeros((0, _REQUEST_COLUMNS), np.int64))
         ids = arrays.get(_IDS, np.zeros(0, np.int64))
         at = 0
