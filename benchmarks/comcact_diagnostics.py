@@ -23,28 +23,21 @@ from pathlib import Path
 import numpy as np
 
 
-def read(run: Path) -> list[dict]:
-    out = []
+def read(run: Path) -> tuple[list[dict], dict | None]:
+    """The run's qt_diagnostics records, and its last progress record's learner_updates, qt_steps_taken and
+    qt_steps_gated (None if no progress record has them)."""
+    out, last = [], None
     with open(run / "metrics.jsonl") as f:
         for line in f:
             if '"qt_diagnostics"' in line:
                 rec = json.loads(line)
                 if rec.get("kind") == "qt_diagnostics":
                     out.append(rec)
-    return out
-
-
-def qt_step_counts(run: Path) -> dict | None:
-    """The last progress record's learner_updates, qt_steps_taken and qt_steps_gated (None before they were
-    written)."""
-    last = None
-    with open(run / "metrics.jsonl") as f:
-        for line in f:
-            if '"qt_steps_taken"' in line:
+            elif '"qt_steps_taken"' in line:
                 last = json.loads(line)
-    if last is None:
-        return None
-    return {k: int(last[k]) for k in ("learner_updates", "qt_steps_taken", "qt_steps_gated")}
+    keys = ("learner_updates", "qt_steps_taken", "qt_steps_gated")
+    counts = None if last is None else {k: int(last[k]) for k in keys}
+    return out, counts
 
 
 def second_half_medians(recs: list[dict]) -> dict:
@@ -61,9 +54,8 @@ def main(argv=None) -> int:
     ap.add_argument("runs", nargs="+", type=Path, help="run directories of comcact_node")
     ap.add_argument("--out", type=Path, default=Path("comcact_diagnostics.png"), help="the figure to write")
     args = ap.parse_args(argv)
-    runs = {r.name: r for r in args.runs if (r / "metrics.jsonl").exists()}
-    data = {name: read(r) for name, r in runs.items()}
-    data = {k: v for k, v in data.items() if v}
+    data = {r.name: read(r) for r in args.runs if (r / "metrics.jsonl").exists()}
+    data = {k: v for k, v in data.items() if v[0]}
     if not data:
         print("no qt_diagnostics records in these runs (comcact_node with diagnostics_every > 0)", file=sys.stderr)
         return 1
@@ -71,7 +63,7 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    for i, (name, recs) in enumerate(sorted(data.items())):
+    for i, (name, (recs, counts)) in enumerate(sorted(data.items())):
         col = f"C{i}"
         step = [r["step"] for r in recs]
         axes[0].plot(step, [r["qt_target_rmse"] for r in recs], color=col, label=f"{name}: QT vs DDPG target")
@@ -82,7 +74,6 @@ def main(argv=None) -> int:
                      label=f"{name}: fraction with > 1 member")
         med = second_half_medians(recs)
         print(f"{name}: second half medians " + ", ".join(f"{k} {v:.3g}" for k, v in med.items()))
-        counts = qt_step_counts(runs[name])
         if counts:
             print(f"{name}: {counts['qt_steps_taken']} QT steps in {counts['learner_updates']} updates, "
                   f"{counts['qt_steps_gated']} skipped by qt_step_gate")
