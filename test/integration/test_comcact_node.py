@@ -62,9 +62,10 @@ def test_embedded_bringup_trains_publishes_and_stops_cleanly_on_ctrl_c(launch, r
     assert e.algorithm == "comcact" and e.env_id == TASK and e.run_id == "emb" and len(e.episode_returns) == 2
     # the run's own record has every evaluation; the topic is volatile, so a subscriber whose discovery finishes
     # after the step-0 evaluation (a loaded machine) misses that one, and gets the later ones in order
-    assert _evals(tmp_path, "emb")[:3] == [0, 150, 300]
+    recorded = _evals(tmp_path, "emb")
+    assert recorded[:3] == [0, 150, 300]
     published = [x.global_step for x in evals]
-    assert 300 in published and published == sorted(published) and set(published) <= set(_evals(tmp_path, "emb"))
+    assert 300 in published and published == sorted(published) and set(published) <= set(recorded)
     assert {x.source for x in episodes} == {"train", "eval"}
     run = tmp_path / "emb"
     assert {"config.yaml", "metrics.jsonl", "progress.csv", "checkpoints"} <= {p.name for p in run.iterdir()}
