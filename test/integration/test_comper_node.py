@@ -181,6 +181,8 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
         ros_node.create_subscription(TransitionBatch, f"/{name}/transitions", batches[alg].append, TRANSITIONS_QOS)
         extra = ["-p", f"algorithm:={alg}", "-p", "total_frames:=1500", "-p", "eval_every:=500",
                  "-p", "eval_episodes:=2", "-p", "learning_starts:=200", "-p", "checkpoint_every:=0"]
+        if alg == "dqn":
+            extra += ["-p", "n_step:=3"]                 # n-step targets from the replay's windows
         args = _args(tmp_path, alg, tag, *extra)
         args[args.index(f"env_id:={GAME}")] = "env_id:=CartPole-v1"
         runs[alg] = launch("comper_agent", "comper_node", *args, "-r", f"comper_node:__node:={name}", name=alg)
@@ -199,6 +201,7 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
         assert cfg["q_network"] == "mlp" and cfg["profile"]["name"] == "classic_control"
         assert cfg["learner"]["optimizer"] == "adam" and cfg["learner"]["learning_starts"] == 200  # -p wins
         assert cfg["profile"]["values"]["lr"]["source"]
+        assert cfg["learner"]["n_step"] == (3 if alg == "dqn" else 1)
         s = json.loads((tmp_path / alg / "summary.json").read_text())
         assert s["frames"] == s["steps"] >= 1500 and s["updates"] > 300 and s["complete"]
         steps = [e["step"] for e in s["evaluations"]]

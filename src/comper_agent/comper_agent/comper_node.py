@@ -114,6 +114,9 @@ class ComperNode(AgentNode):
                                  "observations (use frame_stack:=1, or profile:=classic_control)")
         self.eval_every = p.eval_every if p.eval_every >= 0 else (0 if self.is_atari else 5_000)
         self.uses_memory = p.algorithm != "dqn"
+        if self.cfg.n_step > 1 and self.uses_memory:
+            raise ValueError(f"n_step:={self.cfg.n_step} needs algorithm:=dqn: the {p.algorithm} variant's stored "
+                             "transitions and QT targets are one-step")
         self.uses_qt = p.algorithm in ("comper", "comper_m")
         self.reducer = p.reducer if p.reducer != "auto" else ("memory" if p.algorithm == "comper_f" else "qt_trainer")
         if not self.uses_memory:
@@ -437,8 +440,11 @@ class ComperNode(AgentNode):
             if len(self.replay) < c.batch_size:     # a resumed run refills its replay first
                 return
             with self.ptimers("learner"):
-                batch = self.replay.sample(c.batch_size)
-                self.last_update = self.learner.update(batch)
+                if c.n_step > 1:
+                    batch, windows = self.replay.sample(c.batch_size, c.n_step)
+                    self.last_update = self.learner.update(batch, n_step=windows)
+                else:
+                    self.last_update = self.learner.update(self.replay.sample(c.batch_size))
         else:
             self._flush(with_restore=True)
             self.mem.collect(wait=False)      # reduce_overlap: a reduction that has answered

@@ -21,6 +21,8 @@ rmsprop_dm, divides min_sq_grad by batch_size^2, which gives the identical step.
     comper, comper_m:  y = clip(r) + gamma (1 - terminated) QT(tau)       (qt_targets passed in)
     comper_f, dqn:     y = clip(r) + gamma (1 - terminated) max_a Q_target(s', a)
                        (double_dqn: Q_target(s', argmax_a Q(s', a)))
+    dqn, n_step n > 1: y = sum_j<m gamma^j clip(r_j) + gamma^m (1 - terminated_m) bootstrap(s_m)
+                       (the replay's window of m <= n steps, :class:`~.replay.NStepRewards`)
 
 clip(r) is ``reward_clip`` (default [-1, 1]); the memory and every report keep the raw reward.
 The target network (comper_f, dqn) is copied by :meth:`ComperLearner.sync_target`, which the node
@@ -38,6 +40,7 @@ from comper_msgs_py.arrays import Transitions
 
 from .config import ComperConfig
 from .networks import NatureCNN, QMLP, hard_update
+from .replay import NStepRewards
 
 __all__ = ["DQNRMSprop", "ComperLearner", "linear_epsilon", "clip_rewards", "resolve_q_network"]
 
@@ -177,9 +180,21 @@ class ComperLearner:
         return (v * (1.0 - self._t(batch.terminated, torch.float32))).cpu().numpy().astype(np.float32)
 
     @torch.no_grad()
-    def targets(self, batch: Transitions, qt_targets: np.ndarray | None = None) -> torch.Tensor:
+    def targets(self, batch: Transitions, qt_targets: np.ndarray | None = None,
+                n_step: NStepRewards | None = None) -> torch.Tensor:
+        """TD targets; with `n_step` (a replay's n-step windows, whose last transition `batch` ends at):
+        sum_j gamma^j clip(r_j) over each window + gamma^length (1 - terminated) x bootstrap."""
         c = self.config
-        r = clip_rewards(self._t(batch.rewards, torch.float32), c.reward_clip)
+        if n_step is None:
+            r = clip_rewards(self._t(batch.rewards, torch.float32), c.reward_clip)
+            discount = torch.full_like(r, c.gamma)
+        else:
+            rw = clip_rewards(self._t(n_step.rewards, torch.float32), c.reward_clip)
+            lengths = self._t(n_step.lengths, torch.int64)
+            j = torch.arange(rw.shape[1], device=self.device)
+            in_window = (j[None, :] < lengths[:, None]).to(rw.dtype)
+            r = (rw * in_window * c.gamma ** j.to(rw.dtype)).sum(dim=1)
+            discount = c.gamma ** lengths.to(rw.dtype)
         not_done = 1.0 - self._t(batch.terminated, torch.float32)
         if self.uses_target_net:
             ns = self._t(batch.next_states)
@@ -193,7 +208,7 @@ class ComperLearner:
             if qt_targets is None:
                 raise ValueError(f"variant {c.variant} needs qt_targets")
             boot = self._t(qt_targets, torch.float32).reshape(-1)
-        return r + c.gamma * not_done * boot
+        return r + discount * not_done * boot
 
     def _loss(self, batch: Transitions, y: torch.Tensor) -> torch.Tensor:
         q = self.q(self._t(batch.states))
@@ -209,10 +224,12 @@ class ComperLearner:
         return float(self._loss(batch, self.targets(batch, qt_targets))) / n
 
     # ------------------------------------------------------------------ updates
-    def update(self, batch: Transitions, qt_targets: np.ndarray | None = None) -> dict:
-        """One gradient step on `batch` (qt_targets required for comper / comper_m). Returns the mean
-        Huber loss per transition (comparable across ``loss_reduction``) and the mean target."""
-        y = self.targets(batch, qt_targets)
+    def update(self, batch: Transitions, qt_targets: np.ndarray | None = None,
+               n_step: NStepRewards | None = None) -> dict:
+        """One gradient step on `batch` (qt_targets required for comper / comper_m; n_step: the n-step
+        windows of a replay draw, :meth:`targets`). Returns the mean Huber loss per transition (comparable
+        across ``loss_reduction``) and the mean target."""
+        y = self.targets(batch, qt_targets, n_step)
         loss = self._loss(batch, y)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()

@@ -7,14 +7,74 @@ DQN baseline uses FrameReplay on frames.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-__all__ = ["ReplayBuffer", "FrameReplay"]
+__all__ = ["ReplayBuffer", "FrameReplay", "NStepRewards"]
 
 
-class ReplayBuffer:
+@dataclass
+class NStepRewards:
+    """The n-step part of a batch drawn with ``n_step > 1``: each drawn transition starts a window of up to
+    n consecutive transitions of its episode. rewards: [k, n] raw rewards of the window (0 after its end);
+    lengths: [k] transitions in the window (1..n). The batch's next_states / terminated / truncated are those
+    of the window's last transition, so the target is sum_j gamma^j clip(r_j) + gamma^length Q(s_last')."""
+
+    rewards: np.ndarray
+    lengths: np.ndarray
+
+
+class _Ring:
+    """What both buffers share: a ring of time-ordered transitions (one writer, so positions that follow
+    each other hold consecutive steps until an episode ends), uniform draws, and n-step windows."""
+
+    capacity: int
+    pos: int
+    size: int
+    rewards: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    rng: np.random.Generator
+
+    def __len__(self) -> int:
+        return self.size
+
+    def _draw(self, k: int) -> np.ndarray:
+        if self.size == 0:
+            raise ValueError("cannot sample from an empty replay buffer")
+        return self.rng.integers(0, self.size, size=int(k))
+
+    def _starts_episode(self, p: np.ndarray) -> np.ndarray:
+        return np.zeros(p.shape, bool)
+
+    def _windows(self, idx: np.ndarray, n: int) -> tuple[NStepRewards, np.ndarray]:
+        """Each start position's window: up to n transitions, ending at the first episode end (terminated or
+        truncated), before a transition that starts an episode, or at the newest stored transition.
+        Returns the rewards and lengths, and each window's last position."""
+        k = idx.shape[0]
+        newest = (self.pos - 1) % self.capacity
+        left = (newest - idx) % self.capacity        # transitions stored after the start
+        rewards = np.zeros((k, n), np.float32)
+        rewards[:, 0] = self.rewards[idx]
+        lengths = np.ones(k, np.int64)
+        last = idx.copy()
+        open_ = ~(self.terminated[idx] | self.truncated[idx])
+        for j in range(1, n):
+            p = (idx + j) % self.capacity
+            open_ &= (j <= left) & ~self._starts_episode(p)
+            if not open_.any():
+                break
+            rewards[open_, j] = self.rewards[p[open_]]
+            lengths[open_] += 1
+            last[open_] = p[open_]
+            open_ &= ~(self.terminated[p] | self.truncated[p])
+        return NStepRewards(rewards, lengths), last
+
+
+class ReplayBuffer(_Ring):
     def __init__(self, capacity: int, obs_shape: tuple, action_shape: tuple = (),
                  obs_dtype=np.float32, action_dtype=np.float32, seed: int | None = None):
         self.capacity = int(capacity)
@@ -28,9 +88,6 @@ class ReplayBuffer:
         self.pos = 0
         self.size = 0
         self.rng = np.random.default_rng(seed)
-
-    def __len__(self) -> int:
-        return self.size
 
     @property
     def nbytes(self) -> int:
@@ -55,17 +112,21 @@ class ReplayBuffer:
         self.pos = int((self.pos + n) % self.capacity)
         self.size = min(self.capacity, self.size + n)
 
-    def sample(self, k: int) -> Transitions:
-        """k transitions drawn uniformly with replacement."""
-        if self.size == 0:
-            raise ValueError("cannot sample from an empty replay buffer")
-        idx = self.rng.integers(0, self.size, size=int(k))
+    def sample(self, k: int, n_step: int = 1) -> Transitions | tuple[Transitions, NStepRewards]:
+        """k transitions drawn uniformly with replacement; with n_step > 1 also their n-step windows
+        (:class:`NStepRewards`; the transitions then end where their windows end)."""
+        idx = self._draw(k)
+        if n_step <= 1:
+            return Transitions(states=self.states[idx], actions=self.actions[idx],
+                               rewards=self.rewards[idx], next_states=self.next_states[idx],
+                               terminated=self.terminated[idx], truncated=self.truncated[idx])
+        nsr, last = self._windows(idx, int(n_step))
         return Transitions(states=self.states[idx], actions=self.actions[idx],
-                           rewards=self.rewards[idx], next_states=self.next_states[idx],
-                           terminated=self.terminated[idx], truncated=self.truncated[idx])
+                           rewards=self.rewards[idx], next_states=self.next_states[last],
+                           terminated=self.terminated[last], truncated=self.truncated[last]), nsr
 
 
-class FrameReplay:
+class FrameReplay(_Ring):
     """Uniform replay for stacked uint8 frames that stores each frame once (DQN baseline).
 
     A transition keeps the ids of its state's and next state's frames; within an episode the next
@@ -90,13 +151,11 @@ class FrameReplay:
         self.rewards = np.zeros(c, np.float32)
         self.terminated = np.zeros(c, bool)
         self.truncated = np.zeros(c, bool)
+        self.starts = np.zeros(c, bool)                 # the transition starts an episode
         self.pos = 0
         self.size = 0
         self._last_ns: np.ndarray | None = None         # frame ids of the previous transition's s'
         self.rng = np.random.default_rng(seed)
-
-    def __len__(self) -> int:
-        return self.size
 
     @property
     def nbytes(self) -> int:
@@ -115,7 +174,8 @@ class FrameReplay:
             terminated: bool, truncated: bool, new_episode: bool) -> None:
         s = self._stacked(state)
         ns = self._stacked(next_state)
-        if new_episode or self._last_ns is None:
+        starts = new_episode or self._last_ns is None
+        if starts:
             s_ids = np.array([self._push(f) for f in s], np.int64)
         else:
             s_ids = self._last_ns
@@ -125,6 +185,7 @@ class FrameReplay:
         self.s_ids[p], self.ns_ids[p] = s_ids, ns_ids
         self.actions[p], self.rewards[p] = action, reward
         self.terminated[p], self.truncated[p] = terminated, truncated
+        self.starts[p] = starts
         self._last_ns = ns_ids
         self.pos = (p + 1) % self.capacity
         self.size = min(self.capacity, self.size + 1)
@@ -135,24 +196,33 @@ class FrameReplay:
     def _valid(self, idx: np.ndarray) -> np.ndarray:
         return self.s_ids[idx].min(axis=1) >= self.frames_written - self.n_frames
 
-    def sample(self, k: int) -> Transitions:
-        """k transitions drawn uniformly (with replacement) among those whose frames are all kept."""
-        if self.size == 0:
-            raise ValueError("cannot sample from an empty replay buffer")
-        idx = self.rng.integers(0, self.size, size=int(k))
+    def _starts_episode(self, p: np.ndarray) -> np.ndarray:
+        return self.starts[p]
+
+    def sample(self, k: int, n_step: int = 1) -> Transitions | tuple[Transitions, NStepRewards]:
+        """k transitions drawn uniformly (with replacement) among those whose frames are all kept; with
+        n_step > 1 also their n-step windows (:class:`NStepRewards`; the transitions then end where their
+        windows end: a window's later frames are newer, so they are kept too)."""
+        idx = self._draw(k)
         for _ in range(100):
             bad = ~self._valid(idx)
             if not bad.any():
                 break
             idx[bad] = self.rng.integers(0, self.size, size=int(bad.sum()))
-        return self.take(idx)
+        if n_step <= 1:
+            return self.take(idx)
+        nsr, last = self._windows(idx, int(n_step))
+        return self.take(idx, last), nsr
 
-    def take(self, idx) -> Transitions:
+    def take(self, idx, last=None) -> Transitions:
+        """The transitions at ring positions idx; with `last`, each one's next state and episode flags are
+        those of the transition at last (the end of its n-step window)."""
         idx = np.asarray(idx)
+        last = idx if last is None else np.asarray(last)
         squeeze = self.stack == 1
         st = self.frames[self.s_ids[idx] % self.n_frames]
-        nst = self.frames[self.ns_ids[idx] % self.n_frames]
+        nst = self.frames[self.ns_ids[last] % self.n_frames]
         if squeeze:
             st, nst = st[:, 0], nst[:, 0]
         return Transitions(states=st, actions=self.actions[idx], rewards=self.rewards[idx], next_states=nst,
-                           terminated=self.terminated[idx], truncated=self.truncated[idx])
+                           terminated=self.terminated[last], truncated=self.truncated[last])
