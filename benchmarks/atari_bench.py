@@ -40,7 +40,7 @@ from pathlib import Path
 
 from comper_agent.core.protocol import protocol_summary
 from comper_agent.run_io import MetricsLog
-from learning_bench import claim_domain, release_domain   # one claim registry for every benchmark run
+from learning_bench import claim_domain, parse_variants, release_domain   # one claim registry for every run
 
 import numpy as np
 
@@ -55,17 +55,20 @@ def run_id(game: str, variant: str, seed: int) -> str:
 def launch(args, game: str, variant: str, seed: int, domain: int) -> subprocess.Popen:
     rid = run_id(game, variant, seed)
     log = open(Path(args.out) / "logs" / f"{rid}.log", "wb")
+    base, params = args.named.get(variant, (variant, []))
     cmd = ["ros2", "run", "comper_agent", "comper_node", "--ros-args",
-           "-p", f"algorithm:={variant}", "-p", f"env_id:=ALE/{game}-v5", "-p", f"seed:={seed}",
+           "-p", f"algorithm:={base}", "-p", f"env_id:=ALE/{game}-v5", "-p", f"seed:={seed}",
            "-p", f"total_frames:={args.frames}", "-p", f"runs_root:={Path(args.out) / 'runs'}",
            "-p", f"run_id:={rid}", "-p", f"progress_period_s:={args.progress_period}",
            "-p", "tensorboard:=false"]
-    if args.frame_stack and variant != "dqn":
+    if args.frame_stack and base != "dqn":
         cmd += ["-p", f"frame_stack:={args.frame_stack}"]
     if args.max_steps:
         cmd += ["-p", f"max_steps:={args.max_steps}"]
     for extra in args.ros_arg:
         cmd += ["-p", extra]
+    for name, value in params:               # a named variant's own parameters come last, so they win
+        cmd += ["-p", f"{name}:={value}"]
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                OMP_NUM_THREADS="1")
     print(f"[bench] start {rid} (ROS_DOMAIN_ID {domain}): {' '.join(cmd)}", flush=True)
@@ -137,7 +140,7 @@ def run_record(sd: Path) -> dict:
     s = json.loads(sd.read_text())
     eps = MetricsLog.read(sd.parent / "metrics.jsonl", "episode", missing_ok=True)
     return {"run_id": sd.parent.name, "game": s["env_id"].split("/")[-1].replace("-v5", ""),
-            "variant": s["algorithm"], "seed": s["seed"], "protocol": s["protocol"], "frames": s["frames"],
+            "variant": sd.parent.name.rsplit("-", 2)[0], "seed": s["seed"],   # run id: <variant>-<game>-s<seed> "protocol": s["protocol"], "frames": s["frames"],
             "steps": s["steps"], "wall_time_s": s["wall_time_s"], "complete": s["complete"],
             "episode_frames": [e["frames"] for e in eps], "episode_returns": [e["ret"] for e in eps],
             "profile": s.get("profile")}
@@ -299,7 +302,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     ap.add_argument("--games", nargs="+", default=GAMES, help="ALE game names (ALE/<Game>-v5); default: %(default)s")
-    ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=VARIANTS, help="default: all four")
+    ap.add_argument("--variants", nargs="+", default=VARIANTS,
+                    help=f"{', '.join(VARIANTS)} or a name defined with --variant; default: the four")
+    ap.add_argument("--variant", action="append", default=[], metavar="NAME=ALGORITHM:PARAM=VALUE[,PARAM=VALUE]",
+                    help="a named configuration usable in --variants, e.g. dqn_n10=dqn:n_step=10 (its runs get "
+                         "-p algorithm:=ALGORITHM -p PARAM:=VALUE ..., after every --ros-arg; repeatable)")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="default: %(default)s")
     ap.add_argument("--frames", type=int, default=100_000, help="frame budget per run (thesis: 100,000)")
     ap.add_argument("--max-steps", type=int, default=0, help="also stop each run after this many agent steps")
@@ -319,6 +326,12 @@ def main(argv=None) -> int:
     ap.add_argument("--policy", nargs="+", default=[], metavar="POLICY_JSON",
                     help="atari_policy_check.py --json output(s): the policy column")
     args = ap.parse_args(argv)
+    args.named = parse_variants(args.variant)
+    bad = [v for v in args.variants if v not in VARIANTS and v not in args.named] + \
+        [n for n, (base, _) in args.named.items() if base not in VARIANTS or "-" in n]
+    if bad:
+        ap.error(f"unknown or unusable variant(s) {', '.join(bad)}: choose from {', '.join(VARIANTS)}, or define one "
+                 "with --variant NAME=ALGORITHM:PARAM=VALUE (ALGORITHM one of those, NAME without '-')")
     Path(args.out).mkdir(parents=True, exist_ok=True)
     if not args.report_only:
         run_all(args)
