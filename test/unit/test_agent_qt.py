@@ -173,3 +173,52 @@ def test_native_lstm_equals_torch_lstm_with_the_same_parameters():
     (out_n ** 2).sum().backward()
     for p, q in zip(ref.parameters(), nat.parameters()):
         assert torch.allclose(p.grad, q.grad, atol=1e-5)
+
+
+def test_running_moments_row_by_row_equal_the_float64_copy_they_replace():
+    """_Moments sums rows one by one instead of converting the whole batch to float64: the same values."""
+    from comper_agent.core.qt import _Moments
+    rng = np.random.default_rng(3)
+    batches = [rng.integers(0, 256, size=(n, 300)).astype(np.float32) / 255.0 for n in (1, 17, 64)]
+    m = _Moments(300)
+    n, mean, m2 = 0, None, None
+    for x in batches:
+        m.update(x, refit=False)
+        x64 = x.astype(np.float64)                     # the former computation, written out
+        mb, m2b = x64.mean(axis=0), ((x64 - x64.mean(axis=0)) ** 2).sum(axis=0)
+        if n == 0:
+            n, mean, m2 = x.shape[0], mb, m2b
+        else:
+            tot = n + x.shape[0]
+            delta = mb - mean
+            mean, m2, n = mean + delta * (x.shape[0] / tot), m2 + m2b + delta ** 2 * (n * x.shape[0] / tot), tot
+        assert m.n == n
+        np.testing.assert_array_equal(m.mean, mean)
+        np.testing.assert_array_equal(m.m2, m2)
+
+
+@pytest.mark.parametrize("momentum", [0.0, 0.5])
+def test_qt_rmsprop_steps_equal_torch_rmsprop(momentum):
+    """QT's RMSprop keeps a sqrt buffer instead of allocating one per step: the same parameters after
+    several steps as torch.optim.RMSprop, the same state_dict; with momentum it is torch's own step."""
+    import copy
+    from comper_agent.core.qt import _RMSprop
+    torch.manual_seed(0)
+    net = QTModel(QTConfig(), key_dim=40).net
+    ref = copy.deepcopy(net)
+    kw = dict(lr=2.5e-4, alpha=0.9, eps=1e-10, momentum=momentum)
+    ours, theirs = _RMSprop(net.parameters(), **kw), torch.optim.RMSprop(ref.parameters(), **kw)
+    for i in range(5):
+        x, y = torch.randn(8, 1, 40), torch.randn(8)
+        for model, opt in ((net, ours), (ref, theirs)):
+            opt.zero_grad(set_to_none=True)
+            torch.mean((model(x) - y) ** 2).backward()
+            opt.step()
+    for a, b in zip(net.parameters(), ref.parameters()):
+        assert torch.equal(a, b)
+    sa, sb = ours.state_dict(), theirs.state_dict()
+    assert sa["state"].keys() == sb["state"].keys()
+    for k in sa["state"]:
+        assert sa["state"][k].keys() == sb["state"][k].keys()
+        for name in sa["state"][k]:
+            assert torch.equal(sa["state"][k][name], sb["state"][k][name]), name

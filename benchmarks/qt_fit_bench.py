@@ -1,0 +1,97 @@
+#!/usr/bin/env python3
+"""Time of one QT training round (QTModel.fit + predict, what the QT trainer does per reduction) on
+Atari-sized keys, the current implementation against the one before its two memory fixes, in one run
+(docs/comper.md, "Speed").
+
+    python benchmarks/qt_fit_bench.py                         # 1,784 sets of 4-frame keys (data_efficient profile)
+    python benchmarks/qt_fit_bench.py --sets 1000 --frames 1  # the thesis profile's single frame
+
+The keys are random 84x84 uint8 frames scaled by 1/255 (s and s', 4 frames each: 56,450 values) and the label
+histories random; QT is the Table 37 network with its Table 33 RMSprop, 1 torch thread. Variants, alternated
+round by round so that a load that comes and goes hits both alike:
+
+  before   torch.optim.RMSprop (a new sqrt tensor per parameter per step: QT's 14.5M first-layer weights are
+           re-allocated and page-faulted 112 times per round) and the scaler's moments taken on a float64 copy
+           of all keys (800 MB with its temporaries)
+  now      QT's RMSprop with a kept sqrt buffer and the moments summed row by row (same values, unit-tested)
+
+Each row: median seconds per round over --rounds rounds; the ratio is before over now. Both variants start from
+the same network and see the same data, and their predictions after the rounds must be equal.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+
+import numpy as np
+import torch
+
+from comper_agent.core import qt as qt_mod
+from comper_agent.core.config import QTConfig
+from comper_agent.core.qt import QTModel
+
+
+class _MomentsBefore(qt_mod._Moments):
+    def update(self, x, refit):
+        x = np.asarray(x, np.float64).reshape(x.shape[0], -1)
+        nb = x.shape[0]
+        if nb == 0:
+            return
+        mb = x.mean(axis=0)
+        m2b = ((x - mb) ** 2).sum(axis=0)
+        if refit or self.n == 0:
+            self.n, self.mean, self.m2 = nb, mb, m2b
+            return
+        n = self.n + nb
+        delta = mb - self.mean
+        self.mean = self.mean + delta * (nb / n)
+        self.m2 = self.m2 + m2b + delta ** 2 * (self.n * nb / n)
+        self.n = n
+
+
+def build(variant: str, key_dim: int) -> QTModel:
+    m = QTModel(QTConfig(), key_dim=key_dim)
+    if variant == "before":
+        c = m.config
+        m.optimizer = torch.optim.RMSprop(m.net.parameters(), lr=c.qt_lr, alpha=c.qt_rms_alpha, eps=c.qt_rms_eps,
+                                          momentum=c.qt_rms_momentum)
+        m._in, m._lab = _MomentsBefore(key_dim), _MomentsBefore(1)
+    return m
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sets", type=int, default=1784, help="sets per round (1,784: a data_efficient Freeway reduction)")
+    ap.add_argument("--frames", type=int, default=4, help="frames per observation (key: 2 x frames x 7,056 + 2)")
+    ap.add_argument("--rounds", type=int, default=3, help="training rounds per variant")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    key_dim = 2 * args.frames * 84 * 84 + 2
+    rng = np.random.default_rng(0)
+    keys = rng.integers(0, 256, size=(args.sets, key_dim), dtype=np.uint8).astype(np.float32) / 255.0
+    lengths = rng.integers(1, 12, size=args.sets)
+    hist = rng.normal(size=int(lengths.sum())).astype(np.float32)
+    models = {v: build(v, key_dim) for v in ("before", "now")}
+    times: dict[str, list[float]] = {v: [] for v in models}
+    for r in range(args.rounds):
+        for v, m in models.items():
+            t = time.perf_counter()
+            m.fit(keys, hist, lengths)
+            m.predict(keys, hist, lengths)
+            times[v].append(time.perf_counter() - t)
+        print(f"round {r + 1}: " + ", ".join(f"{v} {times[v][-1]:.2f} s" for v in models), flush=True)
+    same = np.array_equal(models["before"].predict(keys, hist, lengths), models["now"].predict(keys, hist, lengths))
+    med = {v: statistics.median(t) for v, t in times.items()}
+    print(f"\n{args.sets} sets, key {key_dim} values, {args.rounds} rounds, 1 torch thread")
+    print("| variant | s per round (median) | before / variant |\n|---|---|---|")
+    for v in models:
+        print(f"| {v} | {med[v]:.2f} | {med['before'] / med[v]:.2f}x |")
+    print(f"predictions after the rounds equal: {same}")
+    return 0 if same else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
