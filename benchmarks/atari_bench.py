@@ -140,7 +140,8 @@ def run_record(sd: Path) -> dict:
     s = json.loads(sd.read_text())
     eps = MetricsLog.read(sd.parent / "metrics.jsonl", "episode", missing_ok=True)
     return {"run_id": sd.parent.name, "game": s["env_id"].split("/")[-1].replace("-v5", ""),
-            "variant": sd.parent.name.rsplit("-", 2)[0], "seed": s["seed"],   # run id: <variant>-<game>-s<seed> "protocol": s["protocol"], "frames": s["frames"],
+            "variant": sd.parent.name.rsplit("-", 2)[0],     # the run id is <variant>-<game>-s<seed>
+            "seed": s["seed"], "protocol": s["protocol"], "frames": s["frames"],
             "steps": s["steps"], "wall_time_s": s["wall_time_s"], "complete": s["complete"],
             "episode_frames": [e["frames"] for e in eps], "episode_returns": [e["ret"] for e in eps],
             "profile": s.get("profile")}
