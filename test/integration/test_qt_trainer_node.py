@@ -72,3 +72,32 @@ def test_reduce_without_a_memory_node_says_what_to_do(launch, ros_node):
     r = call(ros_node, reduce, Reduce.Request(), timeout=60)
     assert not r.success
     assert "no_such_memory" in r.message and "memory_node:=" in r.message
+
+
+def test_a_reduction_whose_lease_ran_out_is_reported_and_its_sets_go_back_to_tm(launch, ros_node):
+    """A QT round longer than the memory's lease_timeout_s (a slow machine) must not end the learner's run:
+    the trainer answers success with 0 sets reduced and says why, publishes the QT it trained, and the
+    sets are back in TM for the next reduction."""
+    from comper_msgs.srv import GetStats
+    tag = os.getpid()
+    mem, qt = f"mem_lease_{tag}", f"qt_lease_{tag}"
+    launch("comper_memory", "memory_node", "--ros-args", "-p", "lease_timeout_s:=0.001", "-r", f"__node:={mem}",
+           name=mem)
+    trainer = launch("comper_agent", "qt_trainer_node", "--ros-args", "-p", f"memory_node:={mem}",
+                     "-p", "qt_epochs:=3", "-r", f"__node:={qt}", name=qt)
+    models = []
+    ros_node.create_subscription(QTModel, f"/{qt}/qt_model", models.append, QT_MODEL_QOS)
+    req = Store.Request()
+    transitions_to_batch(_transitions(300), req.batch)
+    assert call(ros_node, ros_node.create_client(Store, f"/{mem}/store"), req, timeout=60).success
+
+    r = call(ros_node, ros_node.create_client(Reduce, f"/{qt}/reduce"), Reduce.Request(), timeout=60)
+    assert r.success, r.message
+    assert (r.sets_reduced, r.rtm_size, r.qt_version) == (0, 0, 1)
+    assert "300 sets trained on but not committed" in r.message and "lease_timeout_s" in r.message
+    deadline = time.monotonic() + 20
+    while not models and time.monotonic() < deadline:
+        spin_once(ros_node)
+    assert models and models[-1].version == 1, trainer.log()
+    st = call(ros_node, ros_node.create_client(GetStats, f"/{mem}/get_stats"), GetStats.Request(), timeout=30)
+    assert st.stats.tm_sets == 300 and st.stats.rtm_size == 0

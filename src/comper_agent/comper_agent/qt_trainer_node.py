@@ -103,6 +103,7 @@ class QtTrainerNode(Node):
         self.qt = QTModel(self.qt_config)
         self._lock = threading.Lock()      # one reduction at a time
         self.reductions = 0
+        self.not_committed = 0          # reductions whose commit the memory refused (lease gone)
         self.last_duration_s = 0.0
 
         self._group = ReentrantCallbackGroup()
@@ -164,13 +165,33 @@ class QtTrainerNode(Node):
             predict = reduction_predictor(self.qt, epochs=int(epochs) or None, key_fn=self.key_fn)
             preds = np.asarray(predict(lease), np.float32)
             loss = float(self.qt.train_loss)
-            commit = self.memory.reduce_commit(lease.reduction_id, lease.identity_ids, preds)
+            try:
+                commit = self.memory.reduce_commit(lease.reduction_id, lease.identity_ids, preds)
+            except MemoryServiceError as exc:
+                if "unknown, already committed or expired" not in str(exc):
+                    raise
+                return self._not_committed(m, loss, t0, exc)
             self.reductions += 1
             self.publish_model()
             self.last_duration_s = time.monotonic() - t0
             return {"sets_reduced": commit.committed, "rtm_size": commit.rtm_size,
                     "qt_version": int(self.qt.version), "qt_loss": loss, "duration_s": self.last_duration_s,
                     "message": f"reduced {m} sets"}
+
+    def _not_committed(self, m: int, loss: float, t0: float, exc: Exception) -> dict:
+        """The memory refused the commit because the lease is gone: it ran out while QT trained (a long
+        round on a loaded machine; the memory's lease_timeout_s) or the memory restarted. Its sets are back
+        at the front of TM for the next reduction, so the learner goes on with the RTM it has (0 sets
+        reduced) instead of stopping; QT keeps this round's training and is published."""
+        self.not_committed += 1
+        self.publish_model()
+        self.last_duration_s = time.monotonic() - t0
+        message = (f"{m} sets trained on but not committed after {self.last_duration_s:.1f} s ({exc}); if the lease "
+                   f"ran out, raise the memory's lease_timeout_s; the sets are back in TM for the next reduction")
+        self.get_logger().warning(message)
+        return {"sets_reduced": 0, "rtm_size": int(self.memory.stats()["rtm_size"]),
+                "qt_version": int(self.qt.version), "qt_loss": loss, "duration_s": self.last_duration_s,
+                "message": message}
 
     def _on_reduce(self, request: Reduce.Request, response: Reduce.Response):
         try:
