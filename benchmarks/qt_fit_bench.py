@@ -34,21 +34,11 @@ from comper_agent.core.qt import QTModel
 
 
 class _MomentsBefore(qt_mod._Moments):
-    def update(self, x, refit):
-        x = np.asarray(x, np.float64).reshape(x.shape[0], -1)
-        nb = x.shape[0]
-        if nb == 0:
-            return
+    @staticmethod
+    def batch_moments(x):
+        x = np.asarray(x, np.float64)
         mb = x.mean(axis=0)
-        m2b = ((x - mb) ** 2).sum(axis=0)
-        if refit or self.n == 0:
-            self.n, self.mean, self.m2 = nb, mb, m2b
-            return
-        n = self.n + nb
-        delta = mb - self.mean
-        self.mean = self.mean + delta * (nb / n)
-        self.m2 = self.m2 + m2b + delta ** 2 * (self.n * nb / n)
-        self.n = n
+        return mb, ((x - mb) ** 2).sum(axis=0)
 
 
 def build(variant: str, key_dim: int) -> QTModel:
