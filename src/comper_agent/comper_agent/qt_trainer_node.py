@@ -30,6 +30,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from comper_msgs.msg import QTModel as QTModelMsg
 from comper_memory.client import MemoryClient, MemoryServiceError
+from comper_memory.core.results import LEASE_GONE
 from comper_msgs.srv import Reduce
 from comper_msgs_py.convert import array_to_numpy, numpy_to_array, numpy_to_seq, seq_to_numpy
 from comper_msgs_py.qos import SERVICE_QOS
@@ -168,7 +169,7 @@ class QtTrainerNode(Node):
             try:
                 commit = self.memory.reduce_commit(lease.reduction_id, lease.identity_ids, preds)
             except MemoryServiceError as exc:
-                if "unknown, already committed or expired" not in str(exc):
+                if LEASE_GONE not in str(exc):
                     raise
                 return self._not_committed(m, loss, t0, exc)
             self.reductions += 1

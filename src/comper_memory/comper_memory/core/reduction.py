@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .results import LeaseError, MemoryInputError, ReductionLease, empty_transitions
+from .results import LEASE_GONE, LeaseError, MemoryInputError, ReductionLease, empty_transitions
 from .slots import SlotTable
 from .tables import ReducedTable, TransitionTable
 
@@ -44,7 +44,7 @@ class Reduction:
         them, since begin is not logged). LeaseError / MemoryInputError, nothing changed, if the
         lease is unknown, the ids differ from the lease's or a prediction is not finite."""
         if rid not in self.tm.leases:
-            raise LeaseError(f"commit_reduce: reduction {rid} is unknown, already committed or expired")
+            raise LeaseError(f"commit_reduce: reduction {rid} {LEASE_GONE}")
         lids, _ = self.tm.leases[rid]
         ids = np.asarray(identity_ids, dtype=np.int64).reshape(-1)
         preds = np.asarray(predictions)

@@ -17,7 +17,12 @@ class MemoryInputError(ValueError):
 
 
 class LeaseError(MemoryInputError):
-    """A reduction lease is unknown, already committed or expired; nothing was changed."""
+    """A reduction lease is unknown, already committed or expired; nothing was changed. Its message holds
+    :data:`LEASE_GONE`, which is how a client across ROS (the QT trainer) tells this refusal from others."""
+
+
+#: the words of every LeaseError message (the memory node forwards exception messages to clients)
+LEASE_GONE = "is unknown, already committed or expired"
 
 
 @dataclass
