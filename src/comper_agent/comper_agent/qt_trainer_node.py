@@ -104,7 +104,6 @@ class QtTrainerNode(Node):
         self.qt = QTModel(self.qt_config)
         self._lock = threading.Lock()      # one reduction at a time
         self.reductions = 0
-        self.not_committed = 0          # reductions whose commit the memory refused (lease gone)
         self.last_duration_s = 0.0
 
         self._group = ReentrantCallbackGroup()
@@ -184,7 +183,6 @@ class QtTrainerNode(Node):
         round on a loaded machine; the memory's lease_timeout_s) or the memory restarted. Its sets are back
         at the front of TM for the next reduction, so the learner goes on with the RTM it has (0 sets
         reduced) instead of stopping; QT keeps this round's training and is published."""
-        self.not_committed += 1
         self.publish_model()
         self.last_duration_s = time.monotonic() - t0
         message = (f"{m} sets trained on but not committed after {self.last_duration_s:.1f} s ({exc}); if the lease "

@@ -187,7 +187,7 @@ class ComperLearner:
         c = self.config
         if n_step is None:
             r = clip_rewards(self._t(batch.rewards, torch.float32), c.reward_clip)
-            discount = torch.full_like(r, c.gamma)
+            discount = c.gamma
         else:
             rw = clip_rewards(self._t(n_step.rewards, torch.float32), c.reward_clip)
             lengths = self._t(n_step.lengths, torch.int64)

@@ -116,14 +116,11 @@ class ReplayBuffer(_Ring):
         """k transitions drawn uniformly with replacement; with n_step > 1 also their n-step windows
         (:class:`NStepRewards`; the transitions then end where their windows end)."""
         idx = self._draw(k)
-        if n_step <= 1:
-            return Transitions(states=self.states[idx], actions=self.actions[idx],
-                               rewards=self.rewards[idx], next_states=self.next_states[idx],
-                               terminated=self.terminated[idx], truncated=self.truncated[idx])
-        nsr, last = self._windows(idx, int(n_step))
-        return Transitions(states=self.states[idx], actions=self.actions[idx],
-                           rewards=self.rewards[idx], next_states=self.next_states[last],
-                           terminated=self.terminated[last], truncated=self.truncated[last]), nsr
+        nsr, last = self._windows(idx, int(n_step)) if n_step > 1 else (None, idx)
+        batch = Transitions(states=self.states[idx], actions=self.actions[idx],
+                            rewards=self.rewards[idx], next_states=self.next_states[last],
+                            terminated=self.terminated[last], truncated=self.truncated[last])
+        return batch if nsr is None else (batch, nsr)
 
 
 class FrameReplay(_Ring):
