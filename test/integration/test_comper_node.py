@@ -13,6 +13,7 @@ import json
 import os
 import time
 
+import pytest
 import numpy as np
 import torch
 import yaml
@@ -207,7 +208,12 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
         steps = [e["step"] for e in s["evaluations"]]
         assert steps[:4] == [0, 500, 1000, 1500] and steps[-1] == s["steps"], steps
         assert all(1 <= len(r["returns"]) <= 2 for r in run_io.MetricsLog.read(tmp_path / alg / "metrics.jsonl", "eval"))
-        assert len(evals[alg]) >= 4 and evals[alg][0].global_step == 0
+        # ~/evaluations is volatile: a message published before this test's subscription matched
+        # the node's publisher may be missed, so check what did arrive against the summary
+        by_step = {e["step"]: e["mean_return"] for e in s["evaluations"]}
+        got = [(m.global_step, m.mean_return) for m in evals[alg]]
+        assert len(got) >= 3 and all(by_step.get(step) == pytest.approx(ret) for step, ret in got), (got, by_step)
+        assert [step for step, _ in got] == steps[len(steps) - len(got):]
         t = batch_to_transitions(batches[alg][0])          # each episode's transitions, raw float32 vectors
         assert t.states.dtype == np.float32 and t.states.shape[1:] == (4,) and np.all(t.rewards == 1.0)
         assert (t.value_labels.shape == (len(t),)) if alg == "comper" else (t.value_labels.size == 0)
