@@ -174,7 +174,7 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
     episodes on a separate environment (~/evaluations, metrics.jsonl, summary.json)."""
     from comper_msgs.msg import EvaluationResult
     runs, evals, batches = {}, {}, {}
-    for alg in ("comper", "dqn"):
+    for alg in ("comper", "dqn", "comper_f"):
         tag = f"v{alg}{os.getpid()}"
         name = f"cp_{tag}"
         evals[alg], batches[alg] = [], []
@@ -182,8 +182,8 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
         ros_node.create_subscription(TransitionBatch, f"/{name}/transitions", batches[alg].append, TRANSITIONS_QOS)
         extra = ["-p", f"algorithm:={alg}", "-p", "total_frames:=1500", "-p", "eval_every:=500",
                  "-p", "eval_episodes:=2", "-p", "learning_starts:=200", "-p", "checkpoint_every:=0"]
-        if alg == "dqn":
-            extra += ["-p", "n_step:=3"]                 # n-step targets from the replay's windows
+        if alg != "comper":
+            extra += ["-p", "n_step:=3"]    # dqn: windows drawn from the replay; comper_f: stored windows
         args = _args(tmp_path, alg, tag, *extra)
         args[args.index(f"env_id:={GAME}")] = "env_id:=CartPole-v1"
         runs[alg] = launch("comper_agent", "comper_node", *args, "-r", f"comper_node:__node:={name}", name=alg)
@@ -202,8 +202,9 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
         assert cfg["q_network"] == "mlp" and cfg["profile"]["name"] == "classic_control"
         assert cfg["learner"]["optimizer"] == "adam" and cfg["learner"]["learning_starts"] == 200  # -p wins
         assert cfg["profile"]["values"]["lr"]["source"]
-        assert cfg["learner"]["n_step"] == (3 if alg == "dqn" else 1)
+        assert cfg["learner"]["n_step"] == (1 if alg == "comper" else 3)
         s = json.loads((tmp_path / alg / "summary.json").read_text())
+        assert s["sampling"]["n_step"] == cfg["learner"]["n_step"]
         assert s["frames"] == s["steps"] >= 1500 and s["updates"] > 300 and s["complete"]
         steps = [e["step"] for e in s["evaluations"]]
         assert steps[:4] == [0, 500, 1000, 1500] and steps[-1] == s["steps"], steps
@@ -216,9 +217,13 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
         assert [step for step, _ in got] == steps[len(steps) - len(got):]
         t = batch_to_transitions(batches[alg][0])          # each episode's transitions, raw float32 vectors
         assert t.states.dtype == np.float32 and t.states.shape[1:] == (4,) and np.all(t.rewards == 1.0)
-        assert (t.value_labels.shape == (len(t),)) if alg == "comper" else (t.value_labels.size == 0)
+        assert (t.value_labels.shape == (len(t),)) if alg != "dqn" else (t.value_labels.size == 0)
     mem = json.loads((tmp_path / "comper" / "summary.json").read_text())["memory"]
     assert mem["identities"] > 1000 and mem["rtm_size"] > 0
+    # comper_f with n_step 3: the memory holds 3-step windows (keys [s_t, a_t, return, s_t+3]); CartPole's
+    # episodes end by termination (every window kept), so one identity per agent step as for one-step keys
+    s = json.loads((tmp_path / "comper_f" / "summary.json").read_text())
+    assert s["sampling"]["n_step_windows_dropped"] == 0 and s["memory"]["identities"] > 1000
 
 
 def test_unknown_or_unsuitable_tasks_are_refused_with_one_line(launch, tmp_path):

@@ -89,7 +89,7 @@ def test_help_lists_every_node_and_learner_parameter(node_cls, cfg_cls):
     ("comcact_node", ["-p", "algorithm:=bogus"], "parameter 'algorithm': 'bogus' is not one of ['comcact', 'ddpg']"),
     ("comper_node", ["-p", "reducer:=x"], "parameter 'reducer': 'x' is not one of"),
     ("comper_node", ["-p", "algorithm:=comper", "-p", "reducer:=memory"], "comper needs QT"),
-    ("comper_node", ["-p", "algorithm:=comper_f", "-p", "n_step:=3"], "n_step:=3 needs algorithm:=dqn"),
+    ("comper_node", ["-p", "n_step:=3", "-p", "qt_label:=q_sa"], "n_step:=3 needs qt_label:=next_value"),
 ])
 def test_a_node_that_cannot_start_says_why_in_one_line_and_exits_1(module, args, message, tmp_path):
     p = subprocess.run([sys.executable, "-m", f"comper_agent.{module}", "--ros-args", "-p",

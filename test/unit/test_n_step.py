@@ -1,5 +1,6 @@
-"""n-step returns of the DQN baseline (``n_step``): the replay's windows and the learner's targets, each
-against a reference written out here from the stored episodes."""
+"""n-step returns (``n_step``): the DQN replay's windows, the COMPER variants' stored windows
+(memory_schedule.NStepWindows) and the learner's targets for both, each against a reference written
+out here from the episodes."""
 import sys
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.params import config_from_dict
 from comper_agent.core.comper import ComperLearner
 from comper_agent.core.config import ComperConfig
+from comper_agent.core.memory_schedule import NStepWindows, Row
 from comper_agent.core.replay import FrameReplay, NStepRewards, ReplayBuffer
 
 torch.set_num_threads(1)
@@ -134,3 +136,85 @@ def test_n_step_targets_equal_the_discounted_clipped_sum_plus_the_discounted_boo
     one = NStepRewards(rewards[:, :1].copy(), np.ones(k, np.int64))
     np.testing.assert_allclose(lrn.targets(batch, n_step=one).numpy(), lrn.targets(batch).numpy(), rtol=1e-6)
     assert ComperConfig().n_step == 1
+
+
+def _labelled_rows(lengths_and_ends, seed=0):
+    """One-step rows of consecutive episodes as comper_node labels them: label = max_a Q(s', a) stand-in
+    (a number naming the step), 0 when terminated. Returns a list of episodes, each a list of rows."""
+    rng = np.random.default_rng(seed)
+    episodes, step = [], 0
+    for e, (length, end) in enumerate(lengths_and_ends):
+        rows = []
+        for t in range(length):
+            last = t == length - 1
+            term, trunc = last and end == "terminated", last and end == "truncated"
+            rows.append(Row(np.array([e, t], np.float32), int(rng.integers(3)), float(rng.integers(-3, 4)),
+                            np.array([e, t + 1], np.float32), term, trunc, step, 0.0 if term else 100.0 + step))
+            step += 1
+        episodes.append(rows)
+    return episodes
+
+
+@pytest.mark.parametrize("clip", ["sign", "none"])
+def test_comper_windows_equal_the_episodes_discounted_clipped_sums_and_drop_only_truncated_cuts(clip):
+    n, gamma = 4, 0.9
+    eps = _labelled_rows([(7, "terminated"), (9, "truncated"), (2, "terminated"), (6, "stopped"), (3, "truncated")])
+    f = np.sign if clip == "sign" else (lambda r: r)
+    builder = NStepWindows(n, gamma, f)
+    rng = np.random.default_rng(5)
+    got = []
+    for rows in eps:
+        builder.reset()                                   # comper_node: a new episode
+        i = 0
+        while i < len(rows):                              # stored in flushes of any size
+            k = int(rng.integers(1, 5))
+            got += builder.push(rows[i:i + k])
+            i += k
+    builder.reset()                                       # the run ends mid-episode ("stopped")
+    want, dropped = [], 0
+    for rows in eps:
+        for i in range(len(rows)):
+            w = rows[i:i + n]
+            ends = [j for j, r in enumerate(w) if r.terminated]
+            if ends:
+                w = w[:ends[0] + 1]                       # a termination ends the window: kept, any length
+            elif len(w) < n or any(r.truncated for r in w[:-1]):
+                dropped += 1                              # cut short by a truncation or the run's stop
+                continue
+            want.append((w[0].step, sum(gamma ** j * f(r.reward) for j, r in enumerate(w)), w[-1]))
+    assert [g.step for g in got] == [s for s, _, _ in want]
+    for g, (_, ret, last) in zip(got, want):
+        assert g.reward == pytest.approx(ret, abs=1e-12)
+        np.testing.assert_array_equal(g.next_state, last.next_state)
+        assert (g.terminated, g.truncated, g.label) == (last.terminated, last.truncated, last.label)
+    assert builder.dropped == dropped == (3 + 0 + 0 + 3 + 3)
+    # the window that ends exactly at a truncation is kept, with its bootstrap (not terminated)
+    assert any(g.truncated and not g.terminated for g in got)
+    with pytest.raises(ValueError, match="no value label"):
+        builder.push([Row(np.zeros(2), 0, 1.0, np.zeros(2), False, False, 99, None)])
+
+
+@pytest.mark.parametrize("variant", ["comper", "comper_f"])
+def test_comper_targets_on_stored_windows_bootstrap_n_steps_on_without_clipping_the_window_return(variant):
+    n, gamma = 5, 0.99
+    lrn = ComperLearner(config_from_dict(ComperConfig, {"variant": variant, "n_step": n, "seed": 3,
+                                                        "reward_clip": "sign"}), obs_shape=(3,), n_actions=4)
+    rng = np.random.default_rng(2)
+    k = 6
+    ret = np.array([2.5, -3.9, 0.0, 4.1, -0.5, 1.0], np.float32)          # window returns, already clipped per step
+    term = np.array([False, True, False, False, True, False])
+    ns = rng.normal(size=(k, 3)).astype(np.float32)
+    batch = Transitions(states=rng.normal(size=(k, 3)).astype(np.float32), actions=rng.integers(4, size=k),
+                        rewards=ret, next_states=ns, terminated=term, truncated=np.zeros(k, bool))
+    qt = rng.normal(size=k).astype(np.float32)
+    if variant == "comper":
+        boot = qt
+        y = lrn.targets(batch, qt).numpy()
+    else:
+        with torch.no_grad():
+            boot = lrn.q_target(torch.as_tensor(ns)).max(1).values.numpy()
+        y = lrn.targets(batch).numpy()
+    want = ret + gamma ** n * (1 - term) * boot
+    np.testing.assert_allclose(y, want, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="no replay windows"):
+        lrn.targets(batch, qt, n_step=NStepRewards(ret[:, None], np.ones(k, np.int64)))

@@ -66,7 +66,7 @@ from .agent_run import next_due, resume_text
 from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
 from .evaluation import Evaluation
 from .node_config import COMPER_ALGORITHMS, ComperNodeConfig
-from .core.memory_schedule import (PendingRows, Row, reduce_due, rows_to_transitions, sets_touched_per_reduction,
+from .core.memory_schedule import (NStepWindows, PendingRows, Row, reduce_due, rows_to_transitions, sets_touched_per_reduction,
                                    updates_before_reduce)
 from .core.protocol import protocol_summary
 from .core.replay import FrameReplay
@@ -114,9 +114,9 @@ class ComperNode(AgentNode):
                                  "observations (use frame_stack:=1, or profile:=classic_control)")
         self.eval_every = p.eval_every if p.eval_every >= 0 else (0 if self.is_atari else 5_000)
         self.uses_memory = p.algorithm != "dqn"
-        if self.cfg.n_step > 1 and self.uses_memory:
-            raise ValueError(f"n_step:={self.cfg.n_step} needs algorithm:=dqn: the {p.algorithm} variant's stored "
-                             "transitions and QT targets are one-step")
+        if self.cfg.n_step > 1 and self.uses_memory and self.cfg.qt_label == "q_sa":
+            raise ValueError(f"n_step:={self.cfg.n_step} needs qt_label:=next_value: a q_sa label (Q(s_t, a_t)) "
+                             "is not the bootstrap of s_(t+n)")
         self.uses_qt = p.algorithm in ("comper", "comper_m")
         self.reducer = p.reducer if p.reducer != "auto" else ("memory" if p.algorithm == "comper_f" else "qt_trainer")
         if not self.uses_memory:
@@ -181,6 +181,11 @@ class ComperNode(AgentNode):
         self.updates = 0
         self.last_reduce_step = -(10 ** 9)
         self.pending = PendingRows()            # agent steps not yet stored (the newest may wait for its label)
+        self.windows = None                     # n_step > 1: the memory stores n-step windows of those steps
+        if self.uses_memory and self.cfg.n_step > 1:
+            from .core.comper import clip_rewards
+            mode = self.cfg.reward_clip
+            self.windows = NStepWindows(self.cfg.n_step, self.cfg.gamma, lambda r: clip_rewards(r, mode))
         self.set_counts: list[np.ndarray] = []
         self.last_stats: dict = {}
 
@@ -301,6 +306,8 @@ class ComperNode(AgentNode):
         self.ep_frames0, self.ep_frames = self.frames, 0
         self.new_episode = True
         self.ep_rows: list | None = None
+        if self.windows is not None:
+            self.windows.reset()
         if self.replay is not None:
             if isinstance(self.replay, FrameReplay):
                 self.replay.end_episode()
@@ -374,7 +381,10 @@ class ComperNode(AgentNode):
         t = None
         if rows:
             t = rows_to_transitions(rows, self.env.count, self.run_id)
-            self.env.parts.append(t)
+            self.env.parts.append(t)         # ~/transitions and bags: the one-step transitions, raw rewards
+            if self.windows is not None:
+                rows = self.windows.push(rows)
+                t = rows_to_transitions(rows, self.env.count, self.run_id) if rows else None
             self.stored += len(rows)
         self.mem.store(t, with_restore=with_restore)
 
@@ -516,7 +526,10 @@ class ComperNode(AgentNode):
                                            self.sample_source),
                                 "target": "qt" if self.uses_qt else "target_network",
                                 "reducer": self.reducer, "sample_calls": int(self.mem.sample_calls if self.mem else 0),
-                                "restored": int(self.mem.restored if self.mem else 0)}}
+                                "restored": int(self.mem.restored if self.mem else 0),
+                                "n_step": int(self.cfg.n_step),
+                                # COMPER's n-step windows cut short by a truncation or the run's stop
+                                "n_step_windows_dropped": int(self.windows.dropped if self.windows else 0)}}
         run_io.write_text_atomic(self.run_dir.file("summary.json"), json.dumps(summary, indent=1, default=float))
         t = " | ".join(f"tercile {j + 1} (to episode {x['end_episode']}): {x['mean']:.1f} +- {x['std']:.1f}"
                        for j, x in enumerate(s["terciles"]))

@@ -87,10 +87,13 @@ def linear_epsilon(frames: int, start: float = 1.0, end: float = 0.01, decay_fra
     return float(start + frac * (end - start))
 
 
-def clip_rewards(r: torch.Tensor, mode: str) -> torch.Tensor:
-    """The learning signal's reward (``reward_clip``): clip = clamp to [-1, 1], sign, none = raw."""
+def clip_rewards(r, mode: str):
+    """The learning signal's reward (``reward_clip``): clip = clamp to [-1, 1], sign, none = raw.
+    A torch tensor or a numpy array (COMPER's n-step windows clip before they are stored)."""
     if mode == "none":
         return r
+    if isinstance(r, np.ndarray):
+        return np.clip(r, -1.0, 1.0) if mode == "clip" else np.sign(r)
     return r.clamp(-1.0, 1.0) if mode == "clip" else torch.sign(r)
 
 
@@ -146,6 +149,9 @@ class ComperLearner:
                                         sq_grad_momentum=c.rms_sq_grad_momentum, min_sq_grad=c.rms_min_sq_grad)
         self.rng = np.random.default_rng(c.seed)
         self.updates = 0
+        # the COMPER variants with n_step > 1 sample stored n-step windows (memory_schedule.NStepWindows):
+        # their rewards are already clipped and discounted, their bootstrap is n steps on
+        self.window_rewards = c.n_step > 1 and c.variant != "dqn"
 
     def _t(self, x, dtype=None) -> torch.Tensor:
         return torch.as_tensor(np.asarray(x), dtype=dtype, device=self.device)
@@ -183,9 +189,16 @@ class ComperLearner:
     def targets(self, batch: Transitions, qt_targets: np.ndarray | None = None,
                 n_step: NStepRewards | None = None) -> torch.Tensor:
         """TD targets; with `n_step` (a replay's n-step windows, whose last transition `batch` ends at):
-        sum_j gamma^j clip(r_j) over each window + gamma^length (1 - terminated) x bootstrap."""
+        sum_j gamma^j clip(r_j) over each window + gamma^length (1 - terminated) x bootstrap. A COMPER
+        variant with ``n_step`` > 1 samples stored windows: r (their return) + gamma^n (1 - terminated)
+        x bootstrap of s_{t+n}."""
         c = self.config
-        if n_step is None:
+        if self.window_rewards:
+            if n_step is not None:
+                raise ValueError("stored n-step windows take no replay windows")
+            r = self._t(batch.rewards, torch.float32)
+            discount = c.gamma ** c.n_step
+        elif n_step is None:
             r = clip_rewards(self._t(batch.rewards, torch.float32), c.reward_clip)
             discount = c.gamma
         else:

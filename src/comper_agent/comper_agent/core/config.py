@@ -267,10 +267,13 @@ class ComperConfig:
         "(double DQN, van Hasselt et al. 2016) instead of max_a Q_target(s', a)",
         thesis="false (the DQN of Mnih et al. 2015 and Machado et al. 2018)")
     n_step: int = param(
-        1, "dqn: transitions per TD target; n > 1 bootstraps from the state n steps on: sum_j<m gamma^j clip(r_j) + "
-        "gamma^m (1 - terminated) Q(s_m), where the window of m <= n steps ends early at the episode's end or "
-        "at the newest stored transition (the rewards of the behaviour policy, uncorrected, as in Rainbow and "
-        "DER). The COMPER variants' stored transitions and QT targets are one-step, so they need 1",
+        1, "transitions per TD target; n > 1 bootstraps from the state n steps on: sum_j<m gamma^j clip(r_j) + "
+        "gamma^m (1 - terminated) bootstrap(s_m) (the rewards of the behaviour policy, uncorrected, as in "
+        "Rainbow and DER). dqn: the replay cuts each drawn window (m <= n) at the episode's end or the newest "
+        "stored transition. comper, comper_f, comper_m: the memory stores n-step transitions (s_t, a_t, the "
+        "window's return, s_{t+n}) labelled max_a Q(s_{t+n}, a), and QT or the target network bootstraps "
+        "s_{t+n} with gamma^n; windows ended by a termination are kept, those cut short by a truncation are "
+        "dropped (memory_schedule.NStepWindows). Deviation from the thesis for n > 1 (not with qt_label q_sa)",
         thesis="1 (one-step Q-learning: Algorithm 7 and the DQN of Table 35)", minimum=1)
     rms_grad_momentum: float = param(0.95, "RMSProp gradient (mean) momentum",
                                      thesis="0.95 (Table 32)", minimum=0.0, maximum=1.0)

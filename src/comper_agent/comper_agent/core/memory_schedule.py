@@ -14,7 +14,7 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-__all__ = ["Row", "PendingRows", "rows_to_transitions", "reduce_due", "updates_before_reduce", "batches_per_sample",
+__all__ = ["Row", "PendingRows", "NStepWindows", "rows_to_transitions", "reduce_due", "updates_before_reduce", "batches_per_sample",
            "sets_touched_per_reduction"]
 
 
@@ -61,6 +61,58 @@ class PendingRows:
         n = self.labelled()
         rows, self.rows = self.rows[:n], self.rows[n:]
         return rows
+
+
+class NStepWindows:
+    """COMPER's n-step transitions (``n_step`` > 1), built from an episode's labelled one-step rows in
+    time order before they are stored. The window that starts at step t covers m <= n steps:
+
+        (s_t, a_t, sum_j<m gamma^j clip(r_{t+j}), s_{t+m}, terminated, truncated, label of step t+m-1)
+
+    The label is the last row's: max_a Q(s_{t+m}, a), 0 when terminated. The reward is the learning
+    signal's (clipped per step with ``clip``, then discounted), so the learner bootstraps with
+    gamma^n and does not clip again. m = n, except at a termination, which ends every window that
+    reaches it (its bootstrap is masked, so m does not matter). A truncation (time limit, bootstrap
+    kept) ends the window of length n that reaches it; the shorter windows it cuts are dropped
+    (counted in ``dropped``): a stored transition carries no discount of its own, so their gamma^m
+    could not reach the target. A run that stops mid-episode drops its last n - 1 windows the same way.
+    """
+
+    def __init__(self, n: int, gamma: float, clip):
+        if int(n) < 2:
+            raise ValueError(f"n-step windows need n >= 2, got {n}")
+        self.n, self.gamma, self.clip = int(n), float(gamma), clip
+        self.rows: list[Row] = []       # the episode's rows whose window is not complete yet
+        self.dropped = 0
+
+    def reset(self) -> None:
+        """A new episode (or the run's end): windows still open are dropped."""
+        self.dropped += len(self.rows)
+        self.rows = []
+
+    def _window(self, rows: list[Row]) -> Row:
+        r = self.clip(np.asarray([x.reward for x in rows], np.float64))
+        ret = float(np.sum(r * self.gamma ** np.arange(len(rows))))
+        first, last = rows[0], rows[-1]
+        return Row(first.state, first.action, ret, last.next_state, last.terminated, last.truncated,
+                   first.step, last.label)
+
+    def push(self, rows: list[Row]) -> list[Row]:
+        """Labelled one-step rows of one episode, oldest first -> the windows they complete."""
+        out: list[Row] = []
+        for row in rows:
+            if row.label is None:
+                raise ValueError(f"step {row.step} has no value label yet: only labelled rows make windows")
+            self.rows.append(row)
+            if row.terminated:
+                out += [self._window(self.rows[i:]) for i in range(len(self.rows))]
+                self.rows = []
+            elif len(self.rows) == self.n:
+                out.append(self._window(self.rows))
+                self.rows.pop(0)
+            if row.truncated and not row.terminated:
+                self.reset()
+        return out
 
 
 def rows_to_transitions(rows: list[Row], episode_id: int, run_id: str) -> Transitions:
