@@ -273,7 +273,7 @@ class ComperConfig:
         "stored transition. comper, comper_f, comper_m: the memory stores n-step transitions (s_t, a_t, the "
         "window's return, s_{t+n}) labelled max_a Q(s_{t+n}, a), and QT or the target network bootstraps "
         "s_{t+n} with gamma^n; windows ended by a termination are kept, those cut short by a truncation are "
-        "dropped (memory_schedule.NStepWindows). Deviation from the thesis for n > 1 (not with qt_label q_sa)",
+        "dropped (memory_schedule.NStepWindows). Deviation for n > 1 (method.md 6.6); not with qt_label q_sa",
         thesis="1 (one-step Q-learning: Algorithm 7 and the DQN of Table 35)", minimum=1)
     rms_grad_momentum: float = param(0.95, "RMSProp gradient (mean) momentum",
                                      thesis="0.95 (Table 32)", minimum=0.0, maximum=1.0)
