@@ -270,6 +270,8 @@ class ComperNode(AgentNode):
                 last.label = float(self.learner.act(last.next_state, epsilon=0.0)[1].max()) \
                     * (0.0 if last.terminated else 1.0)
             self._flush(with_restore=False)
+        if self.windows is not None:
+            self.windows.reset()          # the windows still open at the stop are dropped (and counted)
 
     def _final_records(self, rc: int) -> None:
         try:
