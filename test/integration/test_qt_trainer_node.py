@@ -2,9 +2,11 @@
 upserts RTM and publishes a QTModel whose predictions, rebuilt in this (learner) process, match
 the predictions the RTM stored; an empty TM reduces to nothing; a missing memory is reported."""
 import os
+import re
 import time
 
 import numpy as np
+import pytest
 
 from comper_msgs.msg import QTModel
 from comper_msgs.srv import Reduce, Sample, Store
@@ -45,6 +47,9 @@ def test_reduce_round_trip_publishes_a_model_that_predicts_like_the_rtm(launch, 
     assert r.success, r.message
     assert (r.sets_reduced, r.rtm_size, r.qt_version) == (300, 300, 1)
     assert np.isfinite(r.qt_loss) and r.duration_s > 0
+    # the answer says where the round's time went
+    split = re.fullmatch(r"reduced 300 sets: lease (\S+) s, QT (\S+) s, commit (\S+) s, model (\S+) s", r.message)
+    assert split and sum(map(float, split.groups())) == pytest.approx(r.duration_s, abs=0.02), r.message
     deadline = time.monotonic() + 20
     while not models and time.monotonic() < deadline:
         spin_once(ros_node)

@@ -178,5 +178,5 @@ class MemoryLink:
         self.rtm_size = r.rtm_size
         self.reductions += 1
         self.last_reduce = {"sets": r.sets_reduced, "qt_version": r.qt_version,
-                            "qt_loss": r.qt_loss, "duration_s": r.duration_s}
+                            "qt_loss": r.qt_loss, "duration_s": r.duration_s, "message": r.message}
         return r

@@ -151,6 +151,7 @@ class QtTrainerNode(Node):
             if not self.memory.ready() and not self.memory.wait_for_service(5.0):
                 raise ServiceError(f"/{self.memory_name}/reduce_begin is not available")
             lease = self.memory.reduce_begin(int(max_sets or self.p.reduce_batch))
+            t_lease = time.monotonic()
             m = len(lease)
             loss = float("nan")
             if m == 0:
@@ -164,6 +165,7 @@ class QtTrainerNode(Node):
                         "message": "TM is empty: nothing to reduce"}
             predict = reduction_predictor(self.qt, epochs=int(epochs) or None, key_fn=self.key_fn)
             preds = np.asarray(predict(lease), np.float32)
+            t_qt = time.monotonic()
             loss = float(self.qt.train_loss)
             try:
                 commit = self.memory.reduce_commit(lease.reduction_id, lease.identity_ids, preds)
@@ -171,12 +173,15 @@ class QtTrainerNode(Node):
                 if LEASE_GONE not in str(exc):
                     raise
                 return self._not_committed(m, loss, t0, exc)
+            t_commit = time.monotonic()
             self.reductions += 1
             self.publish_model()
             self.last_duration_s = time.monotonic() - t0
+            # where a round's time goes: the lease's transfer, QT's keys + fit + predict, the commit, publishing
             return {"sets_reduced": commit.committed, "rtm_size": commit.rtm_size,
                     "qt_version": int(self.qt.version), "qt_loss": loss, "duration_s": self.last_duration_s,
-                    "message": f"reduced {m} sets"}
+                    "message": f"reduced {m} sets: lease {t_lease - t0:.2f} s, QT {t_qt - t_lease:.2f} s, "
+                               f"commit {t_commit - t_qt:.2f} s, model {t0 + self.last_duration_s - t_commit:.2f} s"}
 
     def _not_committed(self, m: int, loss: float, t0: float, exc: Exception) -> dict:
         """The memory refused the commit because the lease is gone: it ran out while QT trained (a long
