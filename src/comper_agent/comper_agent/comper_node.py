@@ -66,8 +66,8 @@ from .agent_run import next_due, resume_text
 from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
 from .evaluation import Evaluation
 from .node_config import COMPER_ALGORITHMS, ComperNodeConfig
-from .core.memory_schedule import (NStepWindows, PendingRows, Row, reduce_due, rows_to_transitions, sets_touched_per_reduction,
-                                   updates_before_reduce)
+from .core.memory_schedule import (NStepWindows, PendingRows, Row, reduce_due, rows_to_transitions,
+                                   sets_touched_per_reduction, updates_before_reduce)
 from .core.protocol import protocol_summary
 from .core.replay import FrameReplay
 from .core.config import COMPER_PROFILES, ComperConfig, DQNConfig, resolve_profile

@@ -14,8 +14,8 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-__all__ = ["Row", "PendingRows", "NStepWindows", "rows_to_transitions", "reduce_due", "updates_before_reduce", "batches_per_sample",
-           "sets_touched_per_reduction"]
+__all__ = ["Row", "PendingRows", "NStepWindows", "rows_to_transitions", "reduce_due", "updates_before_reduce",
+           "batches_per_sample", "sets_touched_per_reduction"]
 
 
 @dataclass
