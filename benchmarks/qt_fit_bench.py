@@ -10,12 +10,15 @@ The keys are random 84x84 uint8 frames scaled by 1/255 (s and s', 4 frames each:
 histories random; QT is the Table 37 network with its Table 33 RMSprop, 1 torch thread. Variants, alternated
 round by round so that a load that comes and goes hits both alike:
 
-  before   torch.optim.RMSprop (a new sqrt tensor per parameter per step: QT's 14.5M first-layer weights are
-           re-allocated and page-faulted 112 times per round) and the scaler's moments taken on a float64 copy
-           of all keys (800 MB with its temporaries)
-  now      QT's RMSprop with a kept sqrt buffer and the moments summed row by row (same values, unit-tested)
+  before        torch.optim.RMSprop (a new sqrt tensor per parameter per step: QT's 14.5M first-layer weights
+                are re-allocated and page-faulted 112 times per round) and the scaler's moments taken on a
+                float64 copy of all keys (800 MB with its temporaries)
+  sqrt_buffer   QT's RMSprop with a kept sqrt buffer and the moments summed row by row (same values,
+                unit-tested), the first layer's weight gradient a new tensor per backward pass
+  now           also the first layer's weight gradient written into a kept buffer (NativeLSTM, _KeptWeightGrad;
+                same values, unit-tested)
 
-Each row: median seconds per round over --rounds rounds; the ratio is before over now. Both variants start from
+Each row: median seconds per round over --rounds rounds; the ratio is before over the variant. All variants start from
 the same network and see the same data, and their predictions after the rounds must be equal.
 """
 from __future__ import annotations
@@ -43,6 +46,8 @@ class _MomentsBefore(qt_mod._Moments):
 
 def build(variant: str, key_dim: int) -> QTModel:
     m = QTModel(QTConfig(), key_dim=key_dim)
+    if variant != "now":
+        m.net.lstms[0].keep_grad_min_numel = float("inf")      # autograd's fresh gradient tensor
     if variant == "before":
         c = m.config
         m.optimizer = torch.optim.RMSprop(m.net.parameters(), lr=c.qt_lr, alpha=c.qt_rms_alpha, eps=c.qt_rms_eps,
@@ -64,7 +69,7 @@ def main(argv=None) -> int:
     keys = rng.integers(0, 256, size=(args.sets, key_dim), dtype=np.uint8).astype(np.float32) / 255.0
     lengths = rng.integers(1, 12, size=args.sets)
     hist = rng.normal(size=int(lengths.sum())).astype(np.float32)
-    models = {v: build(v, key_dim) for v in ("before", "now")}
+    models = {v: build(v, key_dim) for v in ("before", "sqrt_buffer", "now")}
     times: dict[str, list[float]] = {v: [] for v in models}
     for r in range(args.rounds):
         for v, m in models.items():
@@ -73,7 +78,8 @@ def main(argv=None) -> int:
             m.predict(keys, hist, lengths)
             times[v].append(time.perf_counter() - t)
         print(f"round {r + 1}: " + ", ".join(f"{v} {times[v][-1]:.2f} s" for v in models), flush=True)
-    same = np.array_equal(models["before"].predict(keys, hist, lengths), models["now"].predict(keys, hist, lengths))
+    preds = {v: m.predict(keys, hist, lengths) for v, m in models.items()}
+    same = all(np.array_equal(preds["before"], p) for p in preds.values())
     med = {v: statistics.median(t) for v, t in times.items()}
     print(f"\n{args.sets} sets, key {key_dim} values, {args.rounds} rounds, 1 torch thread")
     print("| variant | s per round (median) | before / variant |\n|---|---|---|")

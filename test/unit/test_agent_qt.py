@@ -222,3 +222,50 @@ def test_qt_rmsprop_steps_equal_torch_rmsprop(momentum):
         assert sa["state"][k].keys() == sb["state"][k].keys()
         for name in sa["state"][k]:
             assert torch.equal(sa["state"][k][name], sb["state"][k][name]), name
+
+
+def test_kept_input_weight_gradient_equals_autograds_and_reuses_its_memory():
+    """A large LSTM input weight trained on inputs without gradient keeps its .grad tensor between
+    backward passes (NativeLSTM.keep_grad_min_numel, lowered here): the same gradients and the same QT
+    fit as autograd's fresh tensor, the same accumulation rules, and one buffer for every step."""
+    import copy
+    from comper_agent.core.qt import NativeLSTM
+    rng = np.random.default_rng(4)
+    keys = rng.random((48, 300)).astype(np.float32)
+    hist = rng.normal(size=48).astype(np.float32)
+    lengths = np.ones(48, np.int64)
+    kept, ref = QTModel(QTConfig(), key_dim=300), None
+    ref = copy.deepcopy(kept)
+    lstm = kept.net.lstms[0]
+    lstm.keep_grad_min_numel = 0                       # instance only; ref keeps the class threshold
+    assert ref.net.lstms[0].weight_ih_l0.numel() < NativeLSTM.keep_grad_min_numel
+    w = lstm.weight_ih_l0
+    # one backward: the gradient lands in the kept buffer and equals autograd's
+    x = torch.as_tensor(rng.random((16, 1, 300)), dtype=torch.float32)
+    for net in (kept.net, ref.net):
+        net.zero_grad(set_to_none=True)
+        (net(x) ** 2).sum().backward()
+    assert w.grad is lstm._weight_grad
+    for a, b in zip(kept.net.parameters(), ref.net.parameters()):
+        torch.testing.assert_close(a.grad, b.grad, rtol=1e-6, atol=1e-7)
+    # accumulation: a second backward adds, as autograd does
+    for net in (kept.net, ref.net):
+        (net(x) ** 2).sum().backward()
+    torch.testing.assert_close(w.grad, ref.net.lstms[0].weight_ih_l0.grad, rtol=1e-6, atol=1e-7)
+    # QT fits (zero_grad(set_to_none=True) each mini-batch): same parameters and predictions, one buffer
+    buf = lstm._weight_grad
+    for model in (kept, ref):
+        model.fit(keys, hist, lengths)
+        model.fit(keys[::-1].copy(), hist, lengths)
+    assert lstm._weight_grad is buf and w.grad.data_ptr() == buf.data_ptr()
+    for a, b in zip(kept.net.parameters(), ref.net.parameters()):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(kept.predict(keys, hist, lengths), ref.predict(keys, hist, lengths), rtol=1e-5,
+                               atol=1e-6)
+    # inference and inputs that need a gradient take autograd's path
+    with torch.no_grad():
+        kept.net(x)
+    xg = x.clone().requires_grad_(True)
+    kept.net.zero_grad(set_to_none=True)
+    (kept.net(xg) ** 2).sum().backward()
+    assert xg.grad is not None and w.grad is not buf

@@ -89,6 +89,37 @@ def history_windows(label_history: np.ndarray, history_lengths: np.ndarray, leng
     return labels.astype(np.float32), present
 
 
+class _KeptWeightGrad(torch.autograd.Function):
+    """Identity on the input projection gx = x W^T + b whose weight was detached; its backward writes
+    dL/dW = grad^T x into the module's kept buffer (``out=``) and makes it W's .grad, instead of letting
+    autograd allocate a new tensor per backward. For QT's first layer on 4-frame Atari keys W is 58 MB:
+    the fresh allocation (above glibc's 32 MB mmap ceiling, so never reused) page-faulted ~14,000 pages
+    per mini-batch, about 3/4 of the backward pass's time. Accumulates like autograd: into an existing
+    .grad (zero_grad(set_to_none=False), or two backward calls), else into the buffer. For .backward()
+    only: torch.autograd.grad does not see W."""
+
+    @staticmethod
+    def forward(ctx, gx, x, lstm):
+        ctx.save_for_backward(x)
+        ctx.lstm = lstm
+        return gx.view_as(gx)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (x,) = ctx.saved_tensors
+        lstm = ctx.lstm
+        w = lstm.weight_ih_l0
+        g2, x2 = grad.reshape(-1, grad.shape[-1]).t(), x.reshape(-1, x.shape[-1])
+        if w.grad is not None:
+            w.grad.addmm_(g2, x2)
+        else:
+            buf = lstm._weight_grad
+            if buf is None or buf.shape != w.shape or buf.dtype != w.dtype or buf.device != w.device:
+                buf = lstm._weight_grad = torch.empty_like(w)
+            w.grad = torch.mm(g2, x2, out=buf)
+        return grad, None, None
+
+
 class NativeLSTM(nn.LSTM):
     """nn.LSTM (one layer, unidirectional, batch_first; same parameters and state_dict) computed
     with plain matrix products: the input projection of all steps in one product, then the L
@@ -99,7 +130,16 @@ class NativeLSTM(nn.LSTM):
     14114-input LSTM, batch 16, L 5: 29 ms against nn.LSTM's 40 ms (oneDNN on) / 30 ms (off);
     COMCACT-size (14 -> 64, batch 64, L 1): 2.6x faster than nn.LSTM with oneDNN on; for L 10 at
     this size nn.LSTM's fused loop is faster (~2x). Other configurations fall back to nn.LSTM.
-    Same result as nn.LSTM up to float32 rounding (tested)."""
+    Same result as nn.LSTM up to float32 rounding (tested).
+
+    An input weight of at least ``keep_grad_min_numel`` elements keeps its gradient's memory between
+    backward passes (_KeptWeightGrad) when it is trained on inputs that need no gradient."""
+
+    keep_grad_min_numel = 1 << 22       # 16 MB of float32; smaller blocks are reused by the allocator
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._weight_grad: torch.Tensor | None = None
 
     def forward(self, x, hx=None):
         if (self.num_layers != 1 or self.bidirectional or self.proj_size or not self.batch_first
@@ -107,7 +147,12 @@ class NativeLSTM(nn.LSTM):
             return super().forward(x, hx)
         b, steps, _ = x.shape
         bias = self.bias_ih_l0 + self.bias_hh_l0 if self.bias else None
-        gx = nn.functional.linear(x, self.weight_ih_l0, bias)          # [B, L, 4H]
+        w = self.weight_ih_l0
+        if (w.requires_grad and torch.is_grad_enabled() and not x.requires_grad
+                and w.numel() >= self.keep_grad_min_numel):
+            gx = _KeptWeightGrad.apply(nn.functional.linear(x, w.detach(), bias), x, self)
+        else:
+            gx = nn.functional.linear(x, w, bias)                          # [B, L, 4H]
         if hx is None:
             h = x.new_zeros(b, self.hidden_size)
             c = x.new_zeros(b, self.hidden_size)
@@ -203,6 +248,10 @@ class _RMSprop(torch.optim.RMSprop):
     def __init__(self, params, **kw):
         super().__init__(params, **kw)
         self._sqrt_buf: dict[torch.Tensor, torch.Tensor] = {}
+
+    def __setstate__(self, state):      # copy.deepcopy / pickle keep torch's state only: new scratch space
+        super().__setstate__(state)
+        self._sqrt_buf = {}
 
     @torch.no_grad()
     def step(self, closure=None):
