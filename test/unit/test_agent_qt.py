@@ -269,3 +269,27 @@ def test_kept_input_weight_gradient_equals_autograds_and_reuses_its_memory():
     kept.net.zero_grad(set_to_none=True)
     (kept.net(xg) ** 2).sum().backward()
     assert xg.grad is not None and w.grad is not buf
+
+
+def test_qt_compile_fuses_the_large_weights_update_to_the_eager_values():
+    """qt_compile: the compiled RMSprop update of a large weight (threshold lowered here) gives the eager
+    step's parameters up to float rounding, and says whether it compiled; off leaves no compiled part."""
+    import copy
+    from comper_agent.core.networks import cpp_compiler
+    from comper_agent.core.qt import _RMSprop
+    rng = np.random.default_rng(6)
+    keys = rng.random((64, 200)).astype(np.float32)
+    hist = rng.normal(size=64).astype(np.float32)
+    lengths = np.ones(64, np.int64)
+    eager = QTModel(QTConfig(), key_dim=200)
+    fused = copy.deepcopy(eager)
+    fused.optimizer = _RMSprop(fused.net.parameters(), lr=2.5e-4, alpha=0.9, eps=1e-10, compile="default")
+    fused.optimizer.fused_min_numel = 1000          # the first LSTM layer's 256 x 200 input weight
+    for m in (eager, fused):
+        m.fit(keys, hist, lengths)
+        m.fit(keys, hist, lengths)
+    for a, b in zip(fused.net.parameters(), eager.net.parameters()):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+    rep = fused.optimizer.compile_report()
+    assert rep["mode"] == "default" and rep["compiled"] == (cpp_compiler() is not None), rep
+    assert eager.optimizer.compile_report() == {} and QTConfig().qt_compile == "off"

@@ -69,6 +69,12 @@ class QTConfig:
                                 minimum=0.0)
     qt_device: str = param("cpu", "torch device of QT (cpu, cuda, cuda:0, ...)")
     qt_seed: int = param(0, "seed of QT's initial weights and of its mini-batch shuffling", minimum=0)
+    qt_compile: str = param(
+        "off", "torch.compile of QT's RMSprop update for weights of 4M or more elements (COMPER's first layer "
+        "on 4-frame Atari keys: 14.5M): one fused pass over them instead of five element-wise passes, the same "
+        "arithmetic up to float rounding; off = eager (exact); default / max-autotune-no-cudagraphs = that "
+        "torch.compile mode, compiled at the first step (seconds), eager with a warning if no C++ compiler is "
+        "found or compiling fails (docs/comper.md, Speed)", choices=("off", "default", "max-autotune-no-cudagraphs"))
 
 
 @dataclass(frozen=True)

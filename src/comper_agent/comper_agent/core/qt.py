@@ -45,6 +45,7 @@ from comper_memory.core.keys import transition_keys
 from comper_msgs_py.params import config_to_dict
 
 from .config import QTConfig, qt_config_for
+from .networks import compile_or_eager
 
 __all__ = ["QTNetwork", "QTModel", "default_key_fn", "reduction_predictor", "history_windows",
            "newest_labels", "QT_FORMAT_VERSION"]
@@ -238,6 +239,12 @@ class _Moments:
         return np.where(std < _STD_FLOOR, 1.0, std)
 
 
+def _rms_update(p: torch.Tensor, grad: torch.Tensor, sq: torch.Tensor, lr: float, alpha: float, eps: float) -> None:
+    """One plain RMSprop step in place (torch's order of operations), written for torch.compile to fuse."""
+    sq.mul_(alpha).addcmul_(grad, grad, value=1 - alpha)
+    p.addcdiv_(grad, torch.sqrt(sq).add_(eps), value=-lr)
+
+
 class _RMSprop(torch.optim.RMSprop):
     """torch.optim.RMSprop whose plain step (no momentum, not centred: QT's Table 33 setting) writes sqrt(square
     average) into a buffer kept per parameter instead of a new tensor per step: the same operations in the same
@@ -245,13 +252,22 @@ class _RMSprop(torch.optim.RMSprop):
     at every mini-batch, 58 MB for 4-frame Atari keys. Other settings take torch's own step. The buffers are
     scratch space, not optimiser state: state_dict is torch's."""
 
-    def __init__(self, params, **kw):
+    fused_min_numel = 1 << 22           # with compile != off: the weights the compiled update takes
+
+    def __init__(self, params, compile: str = "off", **kw):
         super().__init__(params, **kw)
         self._sqrt_buf: dict[torch.Tensor, torch.Tensor] = {}
+        self.compile_mode = compile
+        self._fused = compile_or_eager(_rms_update, compile, "QT's RMSprop update") if compile != "off" else None
 
     def __setstate__(self, state):      # copy.deepcopy / pickle keep torch's state only: new scratch space
         super().__setstate__(state)
         self._sqrt_buf = {}
+        self._fused = None
+
+    def compile_report(self) -> dict:
+        """{} when qt_compile is off, else CompiledOrEager.report() (compiled, compile_s, fallback)."""
+        return self._fused.report() if self._fused is not None else {}
 
     @torch.no_grad()
     def step(self, closure=None):
@@ -270,6 +286,9 @@ class _RMSprop(torch.optim.RMSprop):
                     st["square_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
                 st["step"] += 1
                 sq = st["square_avg"]
+                if self._fused is not None and p.numel() >= self.fused_min_numel:
+                    self._fused(p, p.grad, sq, lr, alpha, eps)
+                    continue
                 sq.mul_(alpha).addcmul_(p.grad, p.grad, value=1 - alpha)
                 buf = self._sqrt_buf.get(p)
                 if buf is None or buf.shape != p.shape:
@@ -317,7 +336,7 @@ class QTModel:
                                  c.qt_output_activation, c.qt_output_init).to(self.device)
         self.net.eval()
         self.optimizer = _RMSprop(self.net.parameters(), lr=c.qt_lr, alpha=c.qt_rms_alpha,
-                                  eps=c.qt_rms_eps, momentum=c.qt_rms_momentum)
+                                  eps=c.qt_rms_eps, momentum=c.qt_rms_momentum, compile=c.qt_compile)
         self._in = _Moments(key_dim)
         self._lab = _Moments(1)
         self.input_mean = np.zeros(key_dim, np.float32)
