@@ -265,7 +265,8 @@ class ComperConfig:
         "clip", "reward in the learning signal (TD targets, so also the value labels and QT, which learn "
         "them): clip = clamped to [-1, 1] (for integer game scores this is the sign), sign = the sign of the "
         "reward, none = raw. Episode scores in logs, summaries, topics and bags, and the rewards stored in "
-        "the memory (part of the similarity key), are always the raw game score",
+        "the memory (part of the similarity key), are the raw game score; with n_step > 1 the COMPER variants "
+        "store each window's return of clipped rewards instead",
         thesis="clipped to [-1, 1] (chapter 5 follows Machado et al. 2018, whose DQN clips rewards as Mnih "
         "et al. 2015)", choices=("clip", "sign", "none"))
     double_dqn: bool = param(
