@@ -292,4 +292,5 @@ def test_qt_compile_fuses_the_large_weights_update_to_the_eager_values():
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
     rep = fused.optimizer.compile_report()
     assert rep["mode"] == "default" and rep["compiled"] == (cpp_compiler() is not None), rep
+    assert copy.deepcopy(fused).optimizer.compile_report()["mode"] == "default"   # a copy keeps the setting
     assert eager.optimizer.compile_report() == {} and QTConfig().qt_compile == "off"

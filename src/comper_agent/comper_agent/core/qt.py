@@ -256,14 +256,17 @@ class _RMSprop(torch.optim.RMSprop):
 
     def __init__(self, params, compile: str = "off", **kw):
         super().__init__(params, **kw)
+        self.defaults["qt_compile"] = compile        # kept by copy.deepcopy / pickle with torch's state
+        self._scratch()
+
+    def _scratch(self) -> None:
         self._sqrt_buf: dict[torch.Tensor, torch.Tensor] = {}
-        self.compile_mode = compile
-        self._fused = compile_or_eager(_rms_update, compile, "QT's RMSprop update") if compile != "off" else None
+        mode = self.defaults.get("qt_compile", "off")
+        self._fused = compile_or_eager(_rms_update, mode, "QT's RMSprop update") if mode != "off" else None
 
     def __setstate__(self, state):      # copy.deepcopy / pickle keep torch's state only: new scratch space
         super().__setstate__(state)
-        self._sqrt_buf = {}
-        self._fused = None
+        self._scratch()
 
     def compile_report(self) -> dict:
         """{} when qt_compile is off, else CompiledOrEager.report() (compiled, compile_s, fallback)."""
