@@ -224,18 +224,22 @@ def test_qt_rmsprop_steps_equal_torch_rmsprop(momentum):
             assert torch.equal(sa["state"][k][name], sb["state"][k][name]), name
 
 
+def _training_data_and_twin_models(rng, m: int, key_dim: int):
+    """m sets of random keys with one label each, and two QTModels with the same initial weights."""
+    import copy
+    keys = rng.random((m, key_dim)).astype(np.float32)
+    hist = rng.normal(size=m).astype(np.float32)
+    model = QTModel(QTConfig(), key_dim=key_dim)
+    return keys, hist, np.ones(m, np.int64), model, copy.deepcopy(model)
+
+
 def test_kept_input_weight_gradient_equals_autograds_and_reuses_its_memory():
     """A large LSTM input weight trained on inputs without gradient keeps its .grad tensor between
     backward passes (NativeLSTM.keep_grad_min_numel, lowered here): the same gradients and the same QT
     fit as autograd's fresh tensor, the same accumulation rules, and one buffer for every step."""
-    import copy
     from comper_agent.core.qt import NativeLSTM
     rng = np.random.default_rng(4)
-    keys = rng.random((48, 300)).astype(np.float32)
-    hist = rng.normal(size=48).astype(np.float32)
-    lengths = np.ones(48, np.int64)
-    kept, ref = QTModel(QTConfig(), key_dim=300), None
-    ref = copy.deepcopy(kept)
+    keys, hist, lengths, kept, ref = _training_data_and_twin_models(rng, 48, 300)
     lstm = kept.net.lstms[0]
     lstm.keep_grad_min_numel = 0                       # instance only; ref keeps the class threshold
     assert ref.net.lstms[0].weight_ih_l0.numel() < NativeLSTM.keep_grad_min_numel
@@ -277,12 +281,7 @@ def test_qt_compile_fuses_the_large_weights_update_to_the_eager_values():
     import copy
     from comper_agent.core.networks import cpp_compiler
     from comper_agent.core.qt import _RMSprop
-    rng = np.random.default_rng(6)
-    keys = rng.random((64, 200)).astype(np.float32)
-    hist = rng.normal(size=64).astype(np.float32)
-    lengths = np.ones(64, np.int64)
-    eager = QTModel(QTConfig(), key_dim=200)
-    fused = copy.deepcopy(eager)
+    keys, hist, lengths, eager, fused = _training_data_and_twin_models(np.random.default_rng(6), 64, 200)
     fused.optimizer = _RMSprop(fused.net.parameters(), lr=2.5e-4, alpha=0.9, eps=1e-10, compile="default")
     fused.optimizer.fused_min_numel = 1000          # the first LSTM layer's 256 x 200 input weight
     for m in (eager, fused):

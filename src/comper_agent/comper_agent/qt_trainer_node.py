@@ -176,12 +176,13 @@ class QtTrainerNode(Node):
             t_commit = time.monotonic()
             self.reductions += 1
             self.publish_model()
-            self.last_duration_s = time.monotonic() - t0
+            t_end = time.monotonic()
+            self.last_duration_s = t_end - t0
             # where a round's time goes: the lease's transfer, QT's keys + fit + predict, the commit, publishing
             return {"sets_reduced": commit.committed, "rtm_size": commit.rtm_size,
                     "qt_version": int(self.qt.version), "qt_loss": loss, "duration_s": self.last_duration_s,
                     "message": f"reduced {m} sets: lease {t_lease - t0:.2f} s, QT {t_qt - t_lease:.2f} s, "
-                               f"commit {t_commit - t_qt:.2f} s, model {t0 + self.last_duration_s - t_commit:.2f} s"}
+                               f"commit {t_commit - t_qt:.2f} s, model {t_end - t_commit:.2f} s"}
 
     def _not_committed(self, m: int, loss: float, t0: float, exc: Exception) -> dict:
         """The memory refused the commit because the lease is gone: it ran out while QT trained (a long

@@ -90,6 +90,14 @@ def history_windows(label_history: np.ndarray, history_lengths: np.ndarray, leng
     return labels.astype(np.float32), present
 
 
+def _kept_like(buf: torch.Tensor | None, t: torch.Tensor) -> torch.Tensor:
+    """`buf` when it can hold a tensor like `t` (shape, dtype, device), else a new empty one: the scratch
+    tensors QT keeps between steps instead of allocating them per step."""
+    if buf is not None and buf.shape == t.shape and buf.dtype == t.dtype and buf.device == t.device:
+        return buf
+    return torch.empty_like(t)
+
+
 class _KeptWeightGrad(torch.autograd.Function):
     """Identity on the input projection gx = x W^T + b whose weight was detached; its backward writes
     dL/dW = grad^T x into the module's kept buffer (``out=``) and makes it W's .grad, instead of letting
@@ -114,9 +122,7 @@ class _KeptWeightGrad(torch.autograd.Function):
         if w.grad is not None:
             w.grad.addmm_(g2, x2)
         else:
-            buf = lstm._weight_grad
-            if buf is None or buf.shape != w.shape or buf.dtype != w.dtype or buf.device != w.device:
-                buf = lstm._weight_grad = torch.empty_like(w)
+            buf = lstm._weight_grad = _kept_like(lstm._weight_grad, w)
             w.grad = torch.mm(g2, x2, out=buf)
         return grad, None, None
 
@@ -239,10 +245,13 @@ class _Moments:
         return np.where(std < _STD_FLOOR, 1.0, std)
 
 
-def _rms_update(p: torch.Tensor, grad: torch.Tensor, sq: torch.Tensor, lr: float, alpha: float, eps: float) -> None:
-    """One plain RMSprop step in place (torch's order of operations), written for torch.compile to fuse."""
+def _rms_update(p: torch.Tensor, grad: torch.Tensor, sq: torch.Tensor, lr: float, alpha: float, eps: float,
+                denom: torch.Tensor | None = None) -> None:
+    """One plain RMSprop step in place, torch's order of operations. The eager step passes `denom`, a kept
+    tensor for sqrt(square average) + eps; under torch.compile (no `denom`) the passes fuse into one."""
     sq.mul_(alpha).addcmul_(grad, grad, value=1 - alpha)
-    p.addcdiv_(grad, torch.sqrt(sq).add_(eps), value=-lr)
+    denom = torch.sqrt(sq) if denom is None else torch.sqrt(sq, out=denom)
+    p.addcdiv_(grad, denom.add_(eps), value=-lr)
 
 
 class _RMSprop(torch.optim.RMSprop):
@@ -291,13 +300,9 @@ class _RMSprop(torch.optim.RMSprop):
                 sq = st["square_avg"]
                 if self._fused is not None and p.numel() >= self.fused_min_numel:
                     self._fused(p, p.grad, sq, lr, alpha, eps)
-                    continue
-                sq.mul_(alpha).addcmul_(p.grad, p.grad, value=1 - alpha)
-                buf = self._sqrt_buf.get(p)
-                if buf is None or buf.shape != p.shape:
-                    buf = self._sqrt_buf[p] = torch.empty_like(p)
-                torch.sqrt(sq, out=buf).add_(eps)
-                p.addcdiv_(p.grad, buf, value=-lr)
+                else:
+                    buf = self._sqrt_buf[p] = _kept_like(self._sqrt_buf.get(p), p)
+                    _rms_update(p, p.grad, sq, lr, alpha, eps, buf)
         return None
 
 
