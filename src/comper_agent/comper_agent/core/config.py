@@ -159,7 +159,8 @@ class ComcactConfig:
         1.0, "comcact: weight of the QT step's loss (its gradient is scaled; the step shares the critic's Adam "
         "state, so a weight below 1 makes it smaller relative to the DDPG steps); 0 = no QT step",
         thesis="1 (Algorithm 8 lines 29-34: a full second critic step)", minimum=0.0, maximum=1.0,
-        deviation="< 1 damps the pull towards stale QT targets (method.md 6.4); not measured yet")
+        deviation="< 1 damps the pull towards stale QT targets (method.md 6.4); 0.5 on top of fresh labels and "
+        "the gate on Hopper-v4: 2 of 3 seeds so far, no gain visible (docs/comcact.md)")
     qt_step_gate: bool = param(
         False, "comcact: skip the QT step on a batch where the QT target is farther from the DDPG target (RMS over "
         "the batch) than the critic's own TD error", thesis="off (every update takes the QT step)",
