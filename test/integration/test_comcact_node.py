@@ -1,8 +1,8 @@
 """comcact_node end to end over real ROS 2 (separate processes, no mocks):
 embedded bring-up on InvertedPendulum-v4 (evaluations and episodes published, run directory
 written, Ctrl-C saves a final checkpoint); external bring-up with sim_node, memory_node and
-qt_trainer_node started by ros2 run (with restore_batch: the re-stored batches join their sets in
-the memory node); the ddpg variant with a checkpoint round trip and resume."""
+qt_trainer_node started by ros2 run (with profile fresh_labels_gate: its values reach node and learner,
+and with restore_batch the re-stored batches join their sets in the memory node); the ddpg variant with a checkpoint round trip and resume."""
 import json
 import os
 import signal
@@ -98,10 +98,16 @@ def test_external_bringup_uses_nodes_started_with_ros2_run(launch, tmp_path):
                   *_args(tmp_path, "ext", "-p", "bringup:=external", "-p", f"sim_node:={sim}",
                          "-p", f"memory_node:={mem}", "-p", f"qt_trainer_node:={qt}", "-p", "total_steps:=200",
                          "-p", "eval_every:=100", "-p", "eval_episodes:=1", "-p", "startup_timeout_s:=60",
-                         "-p", "restore_batch:=true", "-p", "label_critic:=target", "-p", "diagnostics_every:=10"),
+                         "-p", "profile:=fresh_labels_gate", "-p", "diagnostics_every:=10"),
                   name="learner_ext")
     assert _wait(proc, 240) == 0, proc.log()[-4000:]
-    assert "external bring-up" in proc.log()
+    assert "external bring-up" in proc.log() and "profile fresh_labels_gate" in proc.log()
+    # the profile set node and learner parameters alike, and config.yaml says where each value came from
+    cfg = yaml.safe_load((tmp_path / "ext" / "config.yaml").read_text())
+    assert cfg["params"]["restore_batch"] is True and cfg["params"]["profile"] == "fresh_labels_gate"
+    assert cfg["learner"]["label_critic"] == "target" and cfg["learner"]["qt_step_gate"] is True
+    assert cfg["profile"]["name"] == "fresh_labels_gate" and "docs/comcact.md" in \
+        cfg["profile"]["values"]["qt_step_gate"]["source"]
     assert _evals(tmp_path, "ext") == [0, 100, 200]
     state = torch.load(tmp_path / "ext" / "checkpoints" / "latest.pt", weights_only=True)["state"]
     assert state["counters"]["step"] == 200 and state["counters"]["reductions"] >= 1

@@ -48,8 +48,24 @@ def test_doc_lists_every_parameter():
         assert parameter_table_markdown(cls) in text, f"docs/agent-core.md is stale for {cls.__name__}"
 
 
-def test_comper_doc_lists_every_profile_value():
+@pytest.mark.parametrize("node", ["comper", "comcact"])
+def test_node_doc_lists_every_profile_value(node):
     from comper_agent.core.config import profile_table_markdown
-    from comper_agent.node_config import ComperNodeConfig
-    text = (DOC.parent / "comper.md").read_text()
-    assert profile_table_markdown(ComperNodeConfig) in text, "docs/comper.md's profile table is stale (paste profile_table_markdown())"
+    from comper_agent.node_config import ComcactNodeConfig, ComperNodeConfig
+    cls = {"comper": ComperNodeConfig, "comcact": ComcactNodeConfig}[node]
+    text = (DOC.parent / f"{node}.md").read_text()
+    assert profile_table_markdown(cls, node) in text, \
+        f"docs/{node}.md's profile table is stale (paste profile_table_markdown({cls.__name__}, {node!r}))"
+
+
+def test_comcact_profiles_name_existing_fields_with_a_source_and_thesis_is_the_default():
+    from comper_agent.core.config import COMCACT_PROFILES
+    from comper_agent.node_config import ComcactNodeConfig
+    owner = {f.name for f in dataclasses.fields(ComcactConfig)} | {f.name for f in dataclasses.fields(ComcactNodeConfig)}
+    assert COMCACT_PROFILES["thesis"] == {} and ComcactNodeConfig().profile == "thesis"
+    for profile, values in COMCACT_PROFILES.items():
+        for k, (v, source) in values.items():
+            assert k in owner, (profile, k)
+            assert isinstance(source, str) and ("docs/comcact.md" in source or "the same runs" in source), (profile, k)
+    # each profile only adds to the one before it: fresh_labels_gate = fresh_labels + the gate
+    assert COMCACT_PROFILES["fresh_labels"].items() <= COMCACT_PROFILES["fresh_labels_gate"].items()

@@ -31,7 +31,8 @@ COMCACT = {**_COMMON, "algorithm": "comcact", "env_id": "InvertedPendulum-v4", "
            "warmup_steps": 0, "store_every": 10, "reduce_every": 10, "reduce_batch": 50_000, "qt_epochs": 0,
            "qt_targets": "local", "qt_wait_s": 2.0, "eval_every": 5_000, "eval_episodes": 10, "eval_seed": -1,
            "checkpoint_every": 0, "progress_period_s": 5.0, "diagnostics_every": 250, "restore_batch": False,
-           "mode": "lockstep", "num_actors": 1, "policy_period_s": 1.0, "replay_ratio": 1.0, "rate_buffer_steps": 200}
+           "mode": "lockstep", "num_actors": 1, "policy_period_s": 1.0, "replay_ratio": 1.0, "rate_buffer_steps": 200,
+           "profile": "thesis"}                                               # added with COMCACT_PROFILES
 COMPER = {**_COMMON, "algorithm": "comper", "env_id": "ALE/Freeway-v5", "total_frames": 100_000, "max_steps": 0,
           "reduce_every": 100, "reduce_batch": 1_000, "qt_epochs": 0, "qt_targets": "local", "qt_wait_s": 5.0,
           "reducer": "auto", "restore_batch": True, "store_every": 4, "stats_every": 1_000,
@@ -90,6 +91,11 @@ def test_help_lists_every_node_and_learner_parameter(node_cls, cfg_cls):
     ("comper_node", ["-p", "reducer:=x"], "parameter 'reducer': 'x' is not one of"),
     ("comper_node", ["-p", "algorithm:=comper", "-p", "reducer:=memory"], "comper needs QT"),
     ("comper_node", ["-p", "n_step:=3", "-p", "qt_label:=q_sa"], "n_step:=3 needs qt_label:=next_value"),
+    ("comcact_node", ["-p", "profile:=best"], "unknown profile 'best'; one of thesis, fresh_labels, fresh_labels_gate"),
+    ("comcact_node", ["-p", "algorithm:=ddpg", "-p", "profile:=fresh_labels"],
+     "profile:=fresh_labels sets COMCACT's value labels and QT step, which ddpg does not have"),
+    ("comcact_node", ["-p", "mode:=async", "-p", "profile:=fresh_labels_gate"],
+     "restore_batch is a lock-step option"),
 ])
 def test_a_node_that_cannot_start_says_why_in_one_line_and_exits_1(module, args, message, tmp_path):
     p = subprocess.run([sys.executable, "-m", f"comper_agent.{module}", "--ros-args", "-p",
@@ -155,27 +161,37 @@ def test_graceful_node_ignores_repeated_signals_and_a_stuck_close_times_out():
             proc.wait()
 
 
-@pytest.mark.parametrize("env_id, given, expected", [
-    ("CartPole-v1", {}, 4_000),                        # classic_control: a reduction that keeps pace
-    ("CartPole-v1", {"reduce_batch": 1_500}, 1_500),   # the command line still wins
-    ("ALE/Freeway-v5", {}, 1_000)])                     # thesis: Table 34
-def test_a_profile_sets_node_parameters_too_and_the_command_line_still_wins(env_id, given, expected):
-    import types
-
+@pytest.mark.parametrize("node_cls, given, expected", [
+    (ComperNode, {"env_id": "CartPole-v1"}, {"reduce_batch": 4_000, "profile": "classic_control"}),
+    # the command line still wins
+    (ComperNode, {"env_id": "CartPole-v1", "reduce_batch": 1_500}, {"reduce_batch": 1_500}),
+    (ComperNode, {"env_id": "ALE/Freeway-v5"}, {"reduce_batch": 1_000, "profile": "thesis"}),   # Table 34
+    (ComcactNode, {}, {"restore_batch": False, "label_critic": "online", "qt_step_gate": False, "profile": "thesis"}),
+    (ComcactNode, {"profile": "fresh_labels_gate"},
+     {"restore_batch": True, "label_critic": "target", "qt_step_gate": True, "profile": "fresh_labels_gate"}),
+    (ComcactNode, {"profile": "fresh_labels", "label_critic": "online"},
+     {"restore_batch": True, "label_critic": "online", "qt_step_gate": False}),
+])
+def test_a_profile_sets_node_and_learner_parameters_and_the_command_line_still_wins(node_cls, given, expected):
+    """What AgentNode.__init__ does with a profile, without the bring-up: node parameters first (algorithm,
+    env_id and profile before the others), then the learner's with the profile's values as defaults."""
     import rclpy
     from rclpy.parameter import Parameter
 
+    from comper_msgs_py.params import config_to_dict
     from comper_msgs_py.ros_params import declare_config
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     try:
         node = rclpy.create_node("profile_probe", context=ctx, parameter_overrides=[
-            Parameter(k, value=v) for k, v in {"env_id": env_id, **given}.items()])
-        holder = types.SimpleNamespace()
-        p = declare_config(node, ComperNodeConfig, declare_first=("algorithm", "env_id", "profile"),
-                           overrides=lambda values: ComperNode._profile_overrides(holder, values))
-        assert p.reduce_batch == expected and holder.profile == ("thesis" if env_id.startswith("ALE/")
-                                                                  else "classic_control")
+            Parameter(k, value=v) for k, v in given.items()])
+        holder = node_cls.__new__(node_cls)        # only the class's profile hooks are used
+        p = declare_config(node, node_cls.CONFIG, declare_first=("algorithm", "env_id", "profile"),
+                           overrides=holder._profile_overrides)
+        cfg = declare_config(node, node_cls.LEARNER_CONFIGS[p.algorithm],
+                             overrides=holder._profile_overrides(config_to_dict(p)))
+        got = {**config_to_dict(p), **config_to_dict(cfg), "profile": holder.profile}
+        assert {k: got[k] for k in expected} == expected
         node.destroy_node()
     finally:
         ctx.try_shutdown()

@@ -66,6 +66,7 @@ class AgentNode(Node):
     OBS_DTYPE = np.float32
     CSV_COLUMNS: list = []
     QT_START_HINT = ""                       # extra arguments in the hint for starting a QT trainer
+    PROFILES: dict = {}                      # profile -> {field: (value, source)} (core/config.py); {} = none
     TIMED_CALLS = ("sim", "memory", "qt", "memory_reduce")   # phases made of service calls
 
     uses_memory = False
@@ -100,10 +101,19 @@ class AgentNode(Node):
 
     # ------------------------------------------------------------------------------ hooks
     def _profile_overrides(self, values: dict) -> dict:
-        """Defaults chosen by a named profile, for node and learner parameters alike; `values`: the
-        node parameters declared so far (algorithm, env_id and profile come first). The command
-        line and parameter files still win."""
-        return {}
+        """Defaults chosen by a named profile (``PROFILES``), for node and learner parameters alike;
+        `values`: the node parameters declared so far (algorithm, env_id and profile come first). The
+        command line and parameter files still win."""
+        if not self.PROFILES or "profile" not in values:
+            return {}
+        self.profile = self._resolve_profile(values["profile"], values["env_id"])
+        return {k: v for k, (v, _) in self.PROFILES[self.profile].items()}
+
+    def _resolve_profile(self, name: str, env_id: str) -> str:
+        """The profile a ``profile`` value names (a node may resolve aliases such as auto)."""
+        if name not in self.PROFILES:
+            raise ValueError(f"unknown profile {name!r}; one of {', '.join(self.PROFILES)}")
+        return name
 
     def _configure(self) -> None:
         """Algorithm flags, ``embedded_params`` and node-specific publishers (before the bring-up)."""
@@ -241,7 +251,10 @@ class AgentNode(Node):
                 "memory": (config_to_dict(e.memory.config) if e is not None and e.memory is not None
                            and hasattr(e.memory, "config") else None),
                 "resumed_from": str(self.outputs.resume_path) if self.outputs.resume_state is not None else None,
-                "env": self.env_description}
+                "env": self.env_description,
+                **({"profile": {"name": self.profile, "values": {k: {"value": v, "source": src} for k, (v, src)
+                                                                in self.PROFILES[self.profile].items()}}}
+                   if self.PROFILES else {})}
 
     def wall_time(self) -> float:
         return self.outputs.wall_time()

@@ -56,7 +56,7 @@ from .agent_run import next_due, resume_text
 from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
 from .evaluation import Evaluation
 from .node_config import ComcactNodeConfig
-from .core.config import ComcactConfig, DDPGConfig
+from .core.config import COMCACT_PROFILES, ComcactConfig, DDPGConfig
 from .core.memory_schedule import Row, reduce_due, rows_to_transitions, updates_before_reduce
 from .policy_weights import PolicyPublisher
 
@@ -69,6 +69,7 @@ class ComcactNode(AgentNode):
     NODE_NAME = "comcact_node"
     CONFIG = ComcactNodeConfig
     LEARNER_CONFIGS = {"comcact": ComcactConfig, "ddpg": DDPGConfig}
+    PROFILES = COMCACT_PROFILES
     # LEARNER_OVERRIDES num_threads 1 (AgentNode): the 400/300 nets at batch 64 gain nothing from a second
     # intra-op thread on the 2-core machine, and the ROS executor threads need the other core (docs/comcact.md)
     OBS_DTYPE = np.float32
@@ -82,9 +83,14 @@ class ComcactNode(AgentNode):
         # async: the actors store into the memory node, so DDPG samples it too (the memory node reduces)
         self.uses_memory = self.comcact or self.async_mode
         self.reducer = "qt_trainer" if self.comcact else ("memory" if self.async_mode else "none")
+        if not self.comcact and self.profile != "thesis":
+            raise ValueError(f"profile:={self.profile} sets COMCACT's value labels and QT step, which ddpg does not "
+                             "have; use profile:=thesis with algorithm:=ddpg")
         if self.async_mode and p.restore_batch:
             raise ValueError("restore_batch is a lock-step option (the re-stores would count as environment "
-                             "steps for the rate limiter); use mode:=lockstep")
+                             "steps for the rate limiter); use mode:=lockstep"
+                             + (f" or a profile without it (profile:={self.profile} sets it)"
+                                if "restore_batch" in self.PROFILES[self.profile] else ""))
         self.policy_pub = (PolicyPublisher(f"{self.get_fully_qualified_name()}/policy", f"{self.get_name()}_policy")
                            if self.async_mode else None)
         self.fleet = None
@@ -138,7 +144,8 @@ class ComcactNode(AgentNode):
                 f"[{self.low.min():g}, {self.high.max():g}]), {p.bringup} bring-up, "
                 f"{resume_text(self.step)} to {p.total_steps} steps; "
                 f"evaluation every {p.eval_every} steps x {p.eval_episodes} episodes"
-                + (f"; reduce every {p.reduce_every} updates, reduce_batch {p.reduce_batch}" if self.comcact else ""))
+                + (f"; reduce every {p.reduce_every} updates, reduce_batch {p.reduce_batch}; profile {self.profile}"
+                   if self.comcact else ""))
 
     def _before_loop(self) -> None:
         p = self.p

@@ -98,11 +98,10 @@ class ComperNode(AgentNode):
     NAMES = {"comper": "COMPER (RTM sampling, QT target)", "comper_f": "COMPER-F (RTM sampling, DQN target network)",
              "comper_m": "COMPER-M (TM sampling, QT target)", "dqn": "DQN baseline (replay + target network)"}
 
-    def _profile_overrides(self, values: dict) -> dict:
-        if "profile" not in values:
-            return {}
-        self.profile = resolve_profile(values["profile"], values["env_id"])
-        return {k: v for k, (v, _) in COMPER_PROFILES[self.profile].items()}
+    PROFILES = COMPER_PROFILES
+
+    def _resolve_profile(self, name: str, env_id: str) -> str:
+        return resolve_profile(name, env_id)      # auto: thesis for ALE games, classic_control otherwise
 
     def _configure(self) -> None:
         p = self.p
@@ -206,10 +205,7 @@ class ComperNode(AgentNode):
         return st
 
     def _run_config(self) -> dict:
-        return {**super()._run_config(),
-                "profile": {"name": self.profile, "values": {k: {"value": v, "source": src} for k, (v, src)
-                                                              in COMPER_PROFILES[self.profile].items()}},
-                "q_network": self.network, "eval_every": self.eval_every}
+        return {**super()._run_config(), "q_network": self.network, "eval_every": self.eval_every}
 
     # ------------------------------------------------------------------------------ main loop
     def _start_line(self) -> str:

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 from comper_msgs_py.params import param
 from comper_sim.core import EPISODE_END_RULES
+from .core.config import COMCACT_PROFILES
 
 __all__ = ["AgentRunConfig", "ComperNodeConfig", "ComcactNodeConfig", "QtTrainerNodeConfig", "ActorNodeConfig",
            "redefault",
@@ -179,6 +180,12 @@ class ComcactNodeConfig(AgentRunConfig):
         "InvertedPendulum-v4", "gymnasium task (continuous actions): InvertedPendulum-v4, Hopper-v4, "
         "Walker2d-v4, HalfCheetah-v4, InvertedDoublePendulum-v4, Pendulum-v1, ... (embedded: given to "
         "the sim node; external: must match the running sim node)")
+    profile: str = param(
+        "thesis", "named set of COMCACT defaults (core/config.py COMCACT_PROFILES, each value with the measurement "
+        "behind it; -p name:=value still wins): thesis = Algorithm 8 and appendix B; fresh_labels = restore_batch "
+        "true, label_critic target (labels that follow the target critic); fresh_labels_gate = the same plus "
+        "qt_step_gate true, the best configuration measured (docs/comcact.md); ddpg takes only thesis",
+        thesis="thesis", choices=tuple(COMCACT_PROFILES))
     total_steps: int = param(50_000, "agent (environment) steps of the run", thesis="50,000 (chapter 6)",
                              minimum=1)
     warmup_steps: int = param(

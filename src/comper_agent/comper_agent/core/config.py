@@ -19,7 +19,8 @@ from comper_msgs_py.params import param
 
 __all__ = ["QTConfig", "ComcactQTConfig", "ComcactConfig", "DDPGConfig", "ComperConfig", "ALL_CONFIGS",
            "parameter_table_markdown",
-           "DQNConfig", "qt_config_for", "QT_CONFIGS", "COMPER_PROFILES", "resolve_profile", "profile_table_markdown"]
+           "DQNConfig", "qt_config_for", "QT_CONFIGS", "COMPER_PROFILES", "COMCACT_PROFILES", "resolve_profile",
+           "profile_table_markdown"]
 
 _NEXT_VALUE_DEVIATION = (
     "thesis text stores Q(s_t, a_t) with tau_t (q_sa), which makes r + gamma QT(tau) a target "
@@ -390,6 +391,29 @@ COMPER_PROFILES: dict[str, dict[str, tuple]] = {
 }
 
 
+# comcact_node profiles: the configurations measured in docs/comcact.md, one parameter away. Unlike COMPER's,
+# their sources are this suite's own benchmark runs (50,000 steps, 3-5 seeds, 10 evaluation episodes every 5,000)
+_FRESH = {
+    "restore_batch": (True, "docs/comcact.md, four-task ablation (2026-12-02): with label_critic target, above the "
+                            "thesis's COMCACT on Hopper-v4, Walker2d-v4, HalfCheetah-v4 and InvertedDoublePendulum-v4 "
+                            "(last 3 evaluations, 3 seeds); at DDPG's level on Walker2d-v4 and "
+                            "InvertedDoublePendulum-v4"),
+    "label_critic": ("target", "the same runs: QT's target error below the critic's own TD error in 9 of 9 runs "
+                               "(the thesis's labels: above it in every run)"),
+}
+#: profile -> {field: (value, source)}, as COMPER_PROFILES; thesis = the defaults (Algorithm 8, appendix B)
+COMCACT_PROFILES: dict[str, dict[str, tuple]] = {
+    "thesis": {},
+    "fresh_labels": dict(_FRESH),
+    "fresh_labels_gate": {
+        **_FRESH,
+        "qt_step_gate": (True, "docs/comcact.md, the QT-step gate (2026-12-02): on top of fresh labels, at DDPG's "
+                               "level on Walker2d-v4 (3 seeds) and HalfCheetah-v4 (5 seeds), below it on Hopper-v4; "
+                               "above fresh labels alone on the mean on both, intervals overlapping"),
+    },
+}
+
+
 def resolve_profile(name: str, env_id: str) -> str:
     """``profile`` auto -> thesis for ALE games (ALE/...), classic_control for other tasks."""
     if name == "auto":
@@ -399,16 +423,19 @@ def resolve_profile(name: str, env_id: str) -> str:
     return name
 
 
-def profile_table_markdown(node_config=None) -> str:
-    """A markdown table of comper_node's profiles: each value that differs from the thesis defaults and
-    its source. node_config: the node's parameter class, for profile values that are node parameters."""
+def profile_table_markdown(node_config=None, node: str = "comper") -> str:
+    """A markdown table of a node's profiles (node: comper -> COMPER_PROFILES over ComperConfig, comcact ->
+    COMCACT_PROFILES over ComcactConfig): each value that differs from the thesis defaults and its source.
+    node_config: the node's parameter class, for profile values that are node parameters."""
     from comper_msgs_py.params import spec_of
+    profiles, learner, thesis = {"comper": (COMPER_PROFILES, ComperConfig, "Algorithm 7, Tables 32-35"),
+                                 "comcact": (COMCACT_PROFILES, ComcactConfig, "Algorithm 8, appendix B")}[node]
     defaults = {f.name: d for f, d, _ in spec_of(node_config)} if node_config is not None else {}
-    defaults.update({f.name: d for f, d, _ in spec_of(ComperConfig)})
+    defaults.update({f.name: d for f, d, _ in spec_of(learner)})
     rows = ["| profile | parameter | value | thesis default | source |", "|---|---|---|---|---|"]
-    for name, values in COMPER_PROFILES.items():
+    for name, values in profiles.items():
         if not values:
-            rows.append(f"| `{name}` | (all) | the defaults | | Algorithm 7, Tables 32-35 |")
+            rows.append(f"| `{name}` | (all) | the defaults | | {thesis} |")
         for k, (v, src) in values.items():
             rows.append(f"| `{name}` | `{k}` | `{v}` | `{defaults[k]}` | {src} |")
     return "\n".join(rows) + "\n"
