@@ -133,6 +133,9 @@ def test_ddpg_variant_checkpoint_and_resume_continue_the_step_count(launch, tmp_
                     name="ddpg2")
     assert _wait(second, 240) == 0, second.log()[-4000:]
     assert "resuming at step 200" in second.log()
+    # what the second command left out (warm-up, console settings) is named, and its values apply
+    changed = [ln for ln in second.log().splitlines() if "differ from the checkpoint's" in ln]
+    assert len(changed) == 1 and "warmup_steps 100 -> 0" in changed[0] and "total_steps" not in changed[0], changed
     s2 = torch.load(ck, weights_only=True)["state"]
     assert s2["counters"]["step"] == 300 and s2["learner"]["updates"] > s1["learner"]["updates"]
     assert s2["counters"]["episodes"] > s1["counters"]["episodes"]

@@ -202,3 +202,16 @@ def test_reduce_batch_pace_rule():
     assert sets_touched_per_reduction(100, 32, 4, True) == 900 <= 1_000        # the thesis's Atari settings keep pace
     assert sets_touched_per_reduction(100, 64, 2, True) == 3_300 > 1_000       # classic_control's pace
     assert sets_touched_per_reduction(100, 64, 2, False) == 100
+
+
+def test_resume_names_the_parameters_that_differ_from_the_checkpoint():
+    from comper_agent.agent_run import changed_parameters
+    saved = {"params": {"profile": "fresh_labels_gate", "restore_batch": True, "total_steps": 200, "resume": ""},
+             "learner": {"qt_step_gate": True, "actor_hidden": [400, 300], "seed": 0}}
+    now = {"params": {"profile": "thesis", "restore_batch": False, "total_steps": 300, "resume": "runs/x",
+                      "new_param": 1},
+           "learner": {"qt_step_gate": False, "actor_hidden": (400, 300), "seed": 0}}
+    # what a resume is for (how far, from where) is not named; a parameter the checkpoint lacks is not either
+    assert changed_parameters(saved, now) == ["profile 'fresh_labels_gate' -> 'thesis'", "restore_batch True -> False",
+                                              "qt_step_gate True -> False"]
+    assert changed_parameters({}, now) == [] and changed_parameters(saved, saved) == []

@@ -29,7 +29,7 @@ from comper_sim.core import episode_over
 
 from . import run_io
 from .agent_main import run_main
-from .agent_run import AgentRun
+from .agent_run import AgentRun, changed_parameters
 from .bringup import START_HINTS, Spinner, make_embedded_nodes
 from .episodes import SUMMARY_QOS, LearnerTopics, TrainingEpisodes
 from .recording_link import RecordingLink, record_topics
@@ -278,6 +278,11 @@ class AgentNode(Node):
         run = self.outputs
         if run.resume_state is not None:
             self._restore(run.resume_state)
+            changed = changed_parameters(run.resume_state.get("config") or {},
+                                         {"params": config_to_dict(self.p), "learner": config_to_dict(self.cfg)})
+            if changed:     # the command line's values apply; a profile or flag left out changes the run
+                self.log.warning("resuming with parameters that differ from the checkpoint's: " + ", ".join(changed)
+                                 + " (the values given now apply; pass the checkpoint's to continue the same run)")
         run.open_logs(self._run_config(), self.CSV_COLUMNS, self.progress_total, self.step)
         self.metrics, self.csv, self.scalars, self.progress = run.metrics, run.csv, run.scalars, run.progress
         start_step = self.step

@@ -14,7 +14,7 @@ from comper_msgs_py.service_client import ServiceError
 
 from . import run_io
 
-__all__ = ["AgentRun", "next_due", "resume_text"]
+__all__ = ["AgentRun", "next_due", "resume_text", "changed_parameters"]
 
 
 def next_due(step: int, every: int) -> int | None:
@@ -25,6 +25,25 @@ def next_due(step: int, every: int) -> int | None:
 def resume_text(step: int) -> str:
     """How a run starts, for the start line: 'resuming at step N' or 'fresh run'."""
     return f"resuming at step {step}" if step else "fresh run"
+
+
+#: parameters a resume is expected to change (where the run goes on from, and how far)
+RESUME_CHANGES = frozenset({"resume", "run_id", "runs_root", "total_steps", "total_frames", "max_steps"})
+
+
+def changed_parameters(saved: dict, now: dict, ignore=RESUME_CHANGES) -> list[str]:
+    """'name old -> new' for each parameter of ``now`` whose value differs from the checkpoint's
+    ``saved`` config ({"params": ..., "learner": ...}; older checkpoints without it: none). Lists and
+    tuples compare by value."""
+    def norm(v):
+        return list(v) if isinstance(v, (list, tuple)) else v
+
+    out = []
+    for part in ("params", "learner"):
+        old, new = saved.get(part) or {}, now.get(part) or {}
+        out += [f"{k} {old[k]!r} -> {new[k]!r}" for k in sorted(new)
+                if k in old and k not in ignore and norm(old[k]) != norm(new[k])]
+    return out
 
 
 class AgentRun:
