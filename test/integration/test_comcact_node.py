@@ -2,7 +2,7 @@
 embedded bring-up on InvertedPendulum-v4 (evaluations and episodes published, run directory
 written, Ctrl-C saves a final checkpoint); external bring-up with sim_node, memory_node and
 qt_trainer_node started by ros2 run (with profile fresh_labels_gate: its values reach node and learner,
-and with restore_batch the re-stored batches join their sets in the memory node); the ddpg variant with a checkpoint round trip and resume."""
+and with restore_batch the re-stored batches join their sets in the memory node); the ddpg variant with a checkpoint round trip and resume (the replay buffer's contents saved and restored)."""
 import json
 import os
 import signal
@@ -111,6 +111,8 @@ def test_external_bringup_uses_nodes_started_with_ros2_run(launch, tmp_path):
     assert _evals(tmp_path, "ext") == [0, 100, 200]
     state = torch.load(tmp_path / "ext" / "checkpoints" / "latest.pt", weights_only=True)["state"]
     assert state["counters"]["step"] == 200 and state["counters"]["reductions"] >= 1
+    # a memory node without snapshot_root refuses the checkpoint's snapshot: said once, weights still saved
+    assert proc.log().count("checkpoints hold no memory contents") == 1 and "replay" not in state
     # restore_batch: every updated batch went back to the memory node and joined its transitions' sets
     diag = run_io.MetricsLog.read(tmp_path / "ext" / "metrics.jsonl", "qt_diagnostics")
     assert len(diag) > 3 and diag[-1]["restored"] > diag[0]["restored"] >= 0
@@ -126,6 +128,9 @@ def test_ddpg_variant_checkpoint_and_resume_continue_the_step_count(launch, tmp_
     ck = tmp_path / "dd" / "checkpoints" / "latest.pt"
     s1 = torch.load(ck, weights_only=True)["state"]
     assert s1["counters"]["step"] == 200 and s1["run"]["algorithm"] == "ddpg" and "qt_trainer" not in s1
+    # the replay buffer's contents are saved beside the checkpoint (checkpoint_replay, default on)
+    assert s1["replay"]["kind"] == "local" and s1["replay"]["transitions"] == 200
+    assert (ck.parent / s1["replay"]["file"]).is_file() and s1["replay"]["file"] == "step_000000200.replay.npz"
 
     second = launch("comper_agent", "comcact_node",
                     "--ros-args", "-p", f"env_id:={TASK}", "-p", f"resume:={tmp_path / 'dd'}", *common,
@@ -133,6 +138,7 @@ def test_ddpg_variant_checkpoint_and_resume_continue_the_step_count(launch, tmp_
                     name="ddpg2")
     assert _wait(second, 240) == 0, second.log()[-4000:]
     assert "resuming at step 200" in second.log()
+    assert "replay buffer restored from" in second.log() and ": 200 transitions" in second.log()
     # what the second command left out (warm-up, console settings) is named, and its values apply
     changed = [ln for ln in second.log().splitlines() if "differ from the checkpoint's" in ln]
     assert len(changed) == 1 and "warmup_steps 100 -> 0" in changed[0] and "total_steps" not in changed[0], changed
@@ -140,6 +146,17 @@ def test_ddpg_variant_checkpoint_and_resume_continue_the_step_count(launch, tmp_
     assert s2["counters"]["step"] == 300 and s2["learner"]["updates"] > s1["learner"]["updates"]
     assert s2["counters"]["episodes"] > s1["counters"]["episodes"]
     assert _evals(tmp_path, "dd") == [0, 100, 200, 300]          # appended in the same run directory
+
+    # a checkpoint whose replay file has gone: the resume stops at start with one readable error, writing nothing
+    (ck.parent / s2["replay"]["file"]).unlink()
+    third = launch("comper_agent", "comcact_node",
+                   "--ros-args", "-p", f"env_id:={TASK}", "-p", f"resume:={tmp_path / 'dd'}", *common,
+                   "-p", "total_steps:=400", "-p", "transport_probe_calls:=0", "-p", "tensorboard:=false",
+                   name="ddpg3")
+    assert _wait(third, 120) == 1, third.log()[-4000:]
+    assert "cannot resume: cannot restore the replay buffer" in third.log() and "checkpoint_replay:=false" in third.log()
+    assert _evals(tmp_path, "dd") == [0, 100, 200, 300]
+    assert torch.load(ck, weights_only=True)["state"]["counters"]["step"] == 300
 
 
 @pytest.mark.parametrize("where", ["child", "in_process"])

@@ -3,8 +3,8 @@
 * COMPER: episodes cut at 1,000 frames by the embedded sim (``max_episode_frames``) so a few hundred
   steps hold whole episodes; ~/episodes and ~/transitions received by this test: uint8 84x84 frames,
   18 actions, frames = 5 x steps (skipped frames counted), labels stored; sticky actions 0.25 in the
-  run's env spec; summary.json with the protocol figures; checkpoint, then resume continues the step
-  count, frames and episode list.
+  run's env spec; summary.json with the protocol figures; checkpoint (with the memory node's snapshot),
+  then resume restores the memory and continues the step count, frames and episode list.
 * comper_f, comper_m, dqn in parallel (distinct node names): each runs 300 steps and uses the
   sampling source / target / reducer it should (summary.json, checkpoint contents, phase timers).
 * record:=true (dqn, 300 steps): the in-process recorder's bag holds every episode and its transitions.
@@ -94,7 +94,8 @@ def test_comper_publishes_episodes_and_transitions_summary_checkpoint_and_resume
     assert "q_target" not in st["learner"]
     assert {"sim", "memory", "qt", "learner", "qt_predict"} <= set(run_io.MetricsLog.read(
         run / "metrics.jsonl", "timers")[-1]["phases"])
-    assert run_io.MetricsLog.read(run / "metrics.jsonl", "memory")
+    saved = run_io.MetricsLog.read(run / "metrics.jsonl", "memory")     # the last one: at the final checkpoint
+    assert saved and saved[-1]["identities"] > 0
 
     # resume: continues step, frames, episodes and updates in the same run directory
     second = launch("comper_agent", "comper_node",
@@ -102,6 +103,13 @@ def test_comper_publishes_episodes_and_transitions_summary_checkpoint_and_resume
                     name="comper_resume")
     assert _wait(second, 150) == 0, second.log()[-4000:]
     assert "resuming at step 420" in second.log()
+    # the memory node's state went into the checkpoint and came back before the resumed run stored anything
+    assert st["replay"]["kind"] == "memory" and (run / "checkpoints" / "step_000000420.memory").is_dir()
+    restored = [ln for ln in second.log().splitlines() if "memory restored from" in ln]
+    assert len(restored) == 1, second.log()[-3000:]
+    # (TM sets may be more: the checkpoint first stores the re-stored batch waiting, which reopens its sets)
+    assert f": {saved[-1]['identities']} identities, TM sets " in restored[0], (restored, saved[-1])
+    assert restored[0].endswith(f"RTM {saved[-1]['rtm_size']}"), (restored, saved[-1])
     st2 = _state(run)
     assert st2["counters"]["step"] == 620 and st2["counters"]["frames"] == 3100
     assert st2["learner"]["updates"] > st["learner"]["updates"]

@@ -23,7 +23,8 @@ _COMMON = {"bringup": "embedded", "episode_end": "standard", "runs_root": "runs"
            "publish_transitions": True, "sim_node": "sim_node", "memory_node": "memory_node",
            "qt_trainer_node": "qt_trainer_node", "service_timeout_s": 120.0, "startup_timeout_s": 30.0,
            "transport_probe_calls": 200, "prefetch_batches": 32, "reduce_overlap": False,
-           "eval_episodes": 10, "eval_seed": -1}
+           "eval_episodes": 10, "eval_seed": -1,
+           "checkpoint_replay": True}                      # added with the memory / replay in checkpoints
 
 # every parameter the nodes declared before the refactoring, with its default (record: comcact only,
 # publish_transitions: comper only, before; both nodes have both now)

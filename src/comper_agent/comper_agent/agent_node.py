@@ -5,7 +5,8 @@ profiles), the embedded bring-up (:mod:`comper_agent.bringup`), the service clie
 (start, loop, stop, final save, time split), the checkpoint's contents and shutdown. A subclass
 supplies the algorithm through the hooks below (``_setup_learner``, ``_loop``, ``_start_line``,
 ``_progress_line``, ...). The parts that hold state of their own are collaborators:
-the run's outputs (:class:`~comper_agent.agent_run.AgentRun`), the training episodes and the
+the run's outputs (:class:`~comper_agent.agent_run.AgentRun`), the experience saved with its checkpoints
+(:class:`~comper_agent.experience_checkpoint.ExperienceCheckpoint`), the training episodes and the
 recorded topics (:mod:`comper_agent.episodes`), evaluation (:mod:`comper_agent.evaluation`, opened
 by the subclass with its policy), the memory link (:class:`~comper_agent.memory_link.MemoryLink`)
 and the recording link (:class:`~comper_agent.recording_link.RecordingLink`). The entry point is
@@ -32,6 +33,7 @@ from .agent_main import run_main
 from .agent_run import AgentRun, changed_parameters
 from .bringup import START_HINTS, Spinner, make_embedded_nodes
 from .episodes import SUMMARY_QOS, LearnerTopics, TrainingEpisodes
+from .experience_checkpoint import ExperienceCheckpoint
 from .recording_link import RecordingLink, record_topics
 from .memory_link import MemoryLink
 from .node_config import AgentRunConfig, redefault
@@ -97,6 +99,7 @@ class AgentNode(Node):
                                     self.stop_event)
         self.mem = (MemoryLink(self, p, reducer=self.reducer, uses_qt=self.uses_qt, timers=self.ptimers,
                                device=self.cfg.device) if self.uses_memory else None)
+        self.experience = ExperienceCheckpoint(self)
         self._bring_up()
 
     # ------------------------------------------------------------------------------ hooks
@@ -154,6 +157,8 @@ class AgentNode(Node):
         nodes: list[Node] = [self]
         if p.bringup == "embedded":
             sim, mem, qt = self.embedded_params
+            if p.checkpoint_replay and self.uses_memory:     # checkpoints hold the memory: step_<N>.memory
+                mem = {"snapshot_root": str(self.run_dir.checkpoints), **mem}
             self.embedded = make_embedded_nodes(
                 self.context, sim_name=p.sim_node,
                 sim_params={"env_id": p.env_id, "episode_end": p.episode_end, "run_id": self.run_id,
@@ -218,6 +223,7 @@ class AgentNode(Node):
         self.learner.load_state_dict(state["learner"])
         c = state["counters"]
         self.step, self.env.count = int(c["step"]), int(c["episodes"])
+        self.stored = int(c.get("stored", 0))
         if self.evaluation is not None:
             self.evaluation.records = list(state.get("evals", []))
         if self.mem is not None:
@@ -259,10 +265,17 @@ class AgentNode(Node):
     def wall_time(self) -> float:
         return self.outputs.wall_time()
 
-    def save(self, final: bool = False) -> Path:
+    def save(self, final: bool = False, replay: bool = True) -> Path:
+        """A checkpoint of this step: the replay's contents first (checkpoint_replay; `replay` False skips
+        them), then the state that names them."""
         with self.ptimers("io"):
-            path = self.outputs.save(self._state(), self.step)
-        self.log.info(f"{'final ' if final else ''}checkpoint: {path}")
+            saved = self.experience.save(self.step) if replay and self.p.checkpoint_replay else None
+            state = self._state()
+            if saved is not None:
+                state["replay"] = saved
+            path = self.outputs.save(state, self.step)
+        self.log.info(f"{'final ' if final else ''}checkpoint: {path}"
+                      + (f" (with {saved['what']})" if saved is not None else ""))
         return path
 
     # ------------------------------------------------------------------------------ main loop
@@ -283,6 +296,11 @@ class AgentNode(Node):
             if changed:     # the command line's values apply; a profile or flag left out changes the run
                 self.log.warning("resuming with parameters that differ from the checkpoint's: " + ", ".join(changed)
                                  + " (the values given now apply; pass the checkpoint's to continue the same run)")
+            try:
+                self.experience.restore(run.resume_state.get("replay"))
+            except RuntimeError as exc:      # a missing or unfit snapshot: nothing of the run is written yet
+                self.log.error(f"cannot resume: {exc}")
+                return 1
         run.open_logs(self._run_config(), self.CSV_COLUMNS, self.progress_total, self.step)
         self.metrics, self.csv, self.scalars, self.progress = run.metrics, run.csv, run.scalars, run.progress
         start_step = self.step
@@ -311,7 +329,7 @@ class AgentNode(Node):
                     self.log.error(f"the reduction in flight did not finish: {exc}")
             self._final_records(rc)
             try:
-                self.save(final=True)
+                self.save(final=True, replay=rc != 130)     # interrupted twice: no memory snapshot
             except Exception as exc:
                 self.log.error(f"final checkpoint failed: {exc}")
             steps = self.step - start_step

@@ -126,6 +126,7 @@ class ComcactNode(AgentNode):
         self.since_reduce = 0
         self.update_count = 0
         self.pending: list[Row] = []           # agent steps not yet stored (labelled when stored)
+        self.experience.quiesce = self._flush   # before a memory snapshot: the steps not yet stored go out too
 
     def _restore(self, state: dict) -> None:
         super()._restore(state)

@@ -51,8 +51,14 @@ class AgentRunConfig:
     run_id: str = param("", "run directory name; '' = <algorithm>-<env>-s<seed>-<timestamp>")
     resume: str = param(
         "", "checkpoint file or run directory to continue from ('' = fresh run). The run continues in "
-        "the checkpoint's run directory with its step count; the memory / replay contents are not in "
-        "the checkpoint and refill from the resumed step, which starts a new episode")
+        "the checkpoint's run directory with its step count and, where the checkpoint holds them "
+        "(checkpoint_replay), the memory's or replay buffer's contents; the resumed step starts a new episode")
+    checkpoint_replay: bool = param(
+        True, "each checkpoint also saves the experience the learner samples: the memory node's state (a "
+        "snapshot through its ~/snapshot service; embedded: step_<N>.memory beside the checkpoint, external: "
+        "<run_id>/step_<N>.memory under the memory node's snapshot_root) or the local replay buffer "
+        "(step_<N>.replay.npz); resume restores it. false = weights and counters only, the memory refills "
+        "after a resume")
     keep_checkpoints: int = param(3, "step_<N>.pt files kept besides latest.pt (0 = keep all)", minimum=0)
     progress_period_s: float = param(5.0, "seconds between console progress lines", minimum=0.0)
     tensorboard: bool = param(True, "write TensorBoard scalars to <run dir>/tb")

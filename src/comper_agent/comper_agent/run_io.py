@@ -20,6 +20,7 @@ import json
 import math
 import os
 import random
+import shutil
 import tempfile
 import time
 from contextlib import contextmanager
@@ -93,18 +94,29 @@ class RunDir:
     def checkpoint_path(self, step: int) -> Path:
         return self.checkpoints / f"step_{int(step):09d}.pt"
 
+    def replay_path(self, step: int, kind: str) -> Path:
+        """Where a checkpoint's replay contents go: ``step_<N>.replay.npz`` (kind local: a learner's own
+        replay buffer) or the snapshot folder ``step_<N>.memory`` (kind memory: written by an embedded
+        memory node whose snapshot_root is the checkpoints folder)."""
+        return self.checkpoints / (self.checkpoint_path(step).stem + (".replay.npz" if kind == "local" else ".memory"))
+
     def save_checkpoint(self, state: dict, step: int, keep_last: int = 3) -> Path:
-        """Write ``step_<N>.pt`` and ``latest.pt`` atomically; keep the newest `keep_last` step files."""
+        """Write ``step_<N>.pt`` and ``latest.pt`` atomically; keep the newest `keep_last` step files
+        (and their replay contents, :meth:`replay_path`)."""
         from .core.checkpoint import save_checkpoint
         path = save_checkpoint(self.checkpoint_path(step), state)
         save_checkpoint(self.checkpoints / "latest.pt", state)
         if keep_last > 0:
             olds = sorted(self.checkpoints.glob("step_*.pt"))[:-keep_last]
             for p in olds:
-                try:
-                    p.unlink()
-                except FileNotFoundError:
-                    pass
+                for companion in (p, p.with_suffix(".replay.npz"), p.with_suffix(".memory")):
+                    if companion.is_dir():
+                        shutil.rmtree(companion, ignore_errors=True)
+                    else:
+                        try:
+                            companion.unlink()
+                        except FileNotFoundError:
+                            pass
         return path
 
 

@@ -14,20 +14,18 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["save_checkpoint", "load_checkpoint", "CHECKPOINT_FORMAT"]
+__all__ = ["save_checkpoint", "load_checkpoint", "save_arrays", "load_arrays", "CHECKPOINT_FORMAT"]
 
 CHECKPOINT_FORMAT = 1
 
 
-def save_checkpoint(path: str | os.PathLike, state: dict) -> Path:
-    """Write `state` atomically to `path` (its folder is created). Returns the path."""
-    path = Path(path)
+def _write_atomic(path: Path, write) -> Path:
+    """write(f) into a temporary file beside `path` (its folder is created), fsync, rename."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {"format": CHECKPOINT_FORMAT, "state": state}
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -40,8 +38,27 @@ def save_checkpoint(path: str | os.PathLike, state: dict) -> Path:
     return path
 
 
+def save_checkpoint(path: str | os.PathLike, state: dict) -> Path:
+    """Write `state` atomically to `path` (its folder is created). Returns the path."""
+    payload = {"format": CHECKPOINT_FORMAT, "state": state}
+    return _write_atomic(Path(path), lambda f: torch.save(payload, f))
+
+
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
     payload = torch.load(Path(path), map_location=map_location, weights_only=True)
     if payload.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: checkpoint format {payload.get('format')}, expected {CHECKPOINT_FORMAT}")
     return payload["state"]
+
+
+def save_arrays(path: str | os.PathLike, arrays: dict) -> Path:
+    """Write numpy arrays to the .npz file `path` atomically (no pickled objects). Returns the path."""
+    import numpy as np
+    return _write_atomic(Path(path), lambda f: np.savez(f, **arrays))
+
+
+def load_arrays(path: str | os.PathLike) -> dict:
+    """The arrays of an .npz file written by :func:`save_arrays` (read fully; no pickled objects)."""
+    import numpy as np
+    with np.load(Path(path), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}

@@ -4,10 +4,16 @@ vector tasks) and :class:`FrameReplay` (DQN on stacked Atari frames, each frame 
 ReplayBuffer stores s and s' separately (simple and correct across episode ends). Memory: capacity
 x 2 x obs size; Atari single frame at 100,000: 1.4 GB; 4 stacked frames: 5.6 GB, which is why the
 DQN baseline uses FrameReplay on frames.
+
+Both buffers give their contents as plain arrays (:meth:`state_arrays`, only the filled part) and take
+them back (:meth:`load_state_arrays`), so a checkpoint can carry the replay and a resumed run samples
+what the interrupted one would have (the same transitions and the same random stream).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import json
 
 import numpy as np
 
@@ -39,8 +45,68 @@ class _Ring:
     truncated: np.ndarray
     rng: np.random.Generator
 
+    #: the per-transition arrays of the ring (first axis = capacity)
+    RING_FIELDS: tuple = ()
+    #: the integer counters saved with them
+    COUNTERS: tuple = ("pos", "size")
+
     def __len__(self) -> int:
         return self.size
+
+    def _geometry(self) -> dict:
+        """What must match between a saved replay and the buffer that loads it."""
+        return {"class": type(self).__name__, "capacity": self.capacity,
+                **{f: list(getattr(self, f).shape[1:]) + [str(getattr(self, f).dtype)] for f in self.RING_FIELDS}}
+
+    def _saved_arrays(self) -> dict[str, np.ndarray]:
+        """Subclass extras (e.g. the frame store), the filled part only."""
+        return {}
+
+    def _check_saved(self, arrays: dict[str, np.ndarray], counters: dict) -> None:
+        """Subclass extras: ValueError if they do not fit (before anything is written)."""
+
+    def _load_saved(self, arrays: dict[str, np.ndarray], counters: dict) -> None:
+        pass
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """The buffer's contents as arrays (the filled positions, counters, the sampling RNG's state):
+        ``np.savez``-able without pickling."""
+        n = self.size
+        out = {f: getattr(self, f)[:n].copy() for f in self.RING_FIELDS}
+        out.update(self._saved_arrays())
+        out["counters"] = np.array([int(getattr(self, c)) for c in self.COUNTERS], np.int64)
+        out["geometry"] = np.array(json.dumps(self._geometry()))
+        out["rng"] = np.array(json.dumps(self.rng.bit_generator.state))
+        return out
+
+    def load_state_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        """Replace the contents by those of :meth:`state_arrays` of a buffer of the same class, capacity
+        and shapes (ValueError otherwise, the buffer untouched)."""
+        try:
+            geometry = json.loads(str(arrays["geometry"]))
+            counters = [int(c) for c in np.asarray(arrays["counters"]).reshape(-1)]
+            rng_state = json.loads(str(arrays["rng"]))
+        except (KeyError, ValueError) as exc:
+            raise ValueError(f"not a saved replay buffer: {exc}") from None
+        if geometry != self._geometry():
+            raise ValueError(f"the saved replay buffer does not fit this one: saved {geometry}, "
+                             f"this run's {self._geometry()}")
+        values = dict(zip(self.COUNTERS, counters))
+        n = values.get("size", -1)
+        if len(counters) != len(self.COUNTERS) or not 0 <= n <= self.capacity \
+                or any(np.shape(arrays.get(f, ())) != (n, *getattr(self, f).shape[1:]) for f in self.RING_FIELDS):
+            raise ValueError("the saved replay buffer is inconsistent (its counters and arrays disagree)")
+        try:
+            type(self.rng.bit_generator)().state = rng_state
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"the saved replay buffer's random state is unusable: {exc}") from None
+        self._check_saved(arrays, values)
+        for f in self.RING_FIELDS:
+            getattr(self, f)[:n] = arrays[f]
+        self._load_saved(arrays, values)
+        for c, v in values.items():
+            setattr(self, c, v)
+        self.rng.bit_generator.state = rng_state
 
     def _draw(self, k: int) -> np.ndarray:
         if self.size == 0:
@@ -75,6 +141,8 @@ class _Ring:
 
 
 class ReplayBuffer(_Ring):
+    RING_FIELDS = ("states", "next_states", "actions", "rewards", "terminated", "truncated")
+
     def __init__(self, capacity: int, obs_shape: tuple, action_shape: tuple = (),
                  obs_dtype=np.float32, action_dtype=np.float32, seed: int | None = None):
         self.capacity = int(capacity)
@@ -132,6 +200,9 @@ class FrameReplay(_Ring):
     global counters into a ring of `capacity + frame_margin` frames; a transition whose oldest frame
     was overwritten is no longer drawn. Reconstruction is exact (checked in the unit tests)."""
 
+    RING_FIELDS = ("s_ids", "ns_ids", "actions", "rewards", "terminated", "truncated", "starts")
+    COUNTERS = ("pos", "size", "frames_written")
+
     def __init__(self, capacity: int, frame_shape: tuple, stack: int, seed: int | None = None,
                  frame_margin: int | None = None):
         self.capacity = int(capacity)
@@ -188,6 +259,28 @@ class FrameReplay(_Ring):
         self.size = min(self.capacity, self.size + 1)
 
     def end_episode(self) -> None:
+        self._last_ns = None
+
+    def _geometry(self) -> dict:
+        return {**super()._geometry(), "frames": [self.n_frames, *self.frame_shape], "stack": self.stack}
+
+    def _saved_arrays(self) -> dict[str, np.ndarray]:
+        """The frames still kept, oldest first (a resumed run starts a new episode: _last_ns is not kept)."""
+        first = max(0, self.frames_written - self.n_frames)
+        ids = np.arange(first, self.frames_written)
+        return {"frames": self.frames[ids % self.n_frames]}
+
+    def _check_saved(self, arrays: dict[str, np.ndarray], counters: dict) -> None:
+        frames = arrays.get("frames")
+        written = counters["frames_written"]
+        if (frames is None or frames.shape != (min(written, self.n_frames), *self.frame_shape)
+                or frames.dtype != np.uint8 or written < 0):
+            raise ValueError("the saved replay buffer's frames do not match its frame count")
+
+    def _load_saved(self, arrays: dict[str, np.ndarray], counters: dict) -> None:
+        frames, written = arrays["frames"], counters["frames_written"]
+        ids = np.arange(written - frames.shape[0], written)
+        self.frames[ids % self.n_frames] = frames
         self._last_ns = None
 
     def _valid(self, idx: np.ndarray) -> np.ndarray:

@@ -1,0 +1,103 @@
+"""ExperienceCheckpoint: the experience a learner samples, saved beside each checkpoint and restored on
+resume (``checkpoint_replay``), so a run split over several sessions learns as one would.
+
+* Memory-backed learners (COMPER variants, COMCACT, async DDPG): the memory node's whole state as a
+  verified snapshot through its ``~/snapshot`` service, once no reduction is in flight and what the
+  learner still holds for the memory has gone out (``quiesce``). Embedded bring-up: the embedded memory
+  node's ``snapshot_root`` is the run's ``checkpoints/`` folder and the snapshot is ``step_<N>.memory``
+  beside ``step_<N>.pt`` (pruned with it, :meth:`RunDir.save_checkpoint`); external: ``<run_id>/step_<N>.memory``
+  under the memory node's own ``snapshot_root``, on its machine.
+* Learners with a local replay buffer (DQN, lock-step DDPG): ``step_<N>.replay.npz`` (the buffer's
+  ``state_arrays``: numpy arrays only, read without unpickling).
+
+The checkpoint records what was saved (``state["replay"]``); the snapshot or file is written first, so a
+checkpoint never names something that is not there.
+"""
+from __future__ import annotations
+
+from comper_msgs_py.service_client import ServiceError
+
+__all__ = ["ExperienceCheckpoint", "SNAPSHOT_TIMEOUT_S"]
+
+#: seconds a memory snapshot or restore may take (an Atari memory of ~20,000 4-frame identities is ~1 GB;
+#: restoring rebuilds its index: ~5 ms per identity here)
+SNAPSHOT_TIMEOUT_S = 600.0
+
+
+class ExperienceCheckpoint:
+    """node: the learner node (its ``mem``, ``replay`` once set up, ``run_dir``, ``run_id``, ``embedded``,
+    ``outputs``, ``p``, ``log``). ``quiesce``: called before a memory snapshot (default: the re-stored
+    batches waiting are stored); a node that holds steps not yet stored sets its own."""
+
+    def __init__(self, node):
+        self.node = node
+        self.quiesce = lambda: node.mem.store(None)
+        self.warned = False
+
+    @property
+    def timeout(self) -> float:
+        return max(self.node.p.service_timeout_s, SNAPSHOT_TIMEOUT_S)
+
+    def save(self, step: int) -> dict | None:
+        """Save the experience beside the checkpoint of `step`; what the checkpoint records about it, or None
+        when there is nothing to save or the memory node refused (warned once: the checkpoints then hold
+        weights and counters only)."""
+        node = self.node
+        if node.mem is not None:
+            if node.mem.in_flight is not None:
+                node.mem.collect(wait=True)
+            self.quiesce()
+            name = node.run_dir.replay_path(step, "memory").name
+            embedded = node.embedded is not None and node.embedded.memory is not None
+            request = name if embedded else f"{node.run_id}/{name}"
+            try:
+                path, _ = node.mem.memory.snapshot(request, timeout=self.timeout)
+            except ServiceError as exc:
+                if not self.warned:
+                    self.warned = True
+                    node.log.warning(f"checkpoints hold no memory contents: the memory node refused its snapshot "
+                                     f"({exc}); give it -p snapshot_root:=DIR, or set checkpoint_replay:=false")
+                return None
+            return {"kind": "memory", "request": request, "path": path, "what": f"the memory's snapshot {path}"}
+        replay = getattr(node, "replay", None)
+        if replay is None:
+            return None
+        from .core.checkpoint import save_arrays
+        f = save_arrays(node.run_dir.replay_path(step, "local"), replay.state_arrays())
+        return {"kind": "local", "file": f.name, "transitions": len(replay),
+                "what": f"the replay buffer, {len(replay)} transitions, {f.name}"}
+
+    def restore(self, saved: dict | None) -> None:
+        """On resume, before anything is stored: the saved experience back into the memory node or the
+        replay buffer. RuntimeError (the caller ends the start) when it is missing or does not fit. A
+        checkpoint without it (older, or saved with checkpoint_replay off) resumes with an empty one."""
+        node = self.node
+        replay = getattr(node, "replay", None)
+        if saved is None:
+            if node.mem is not None or replay is not None:
+                node.log.warning("the checkpoint holds no memory / replay contents: they refill from this step")
+            return
+        if not node.p.checkpoint_replay:
+            node.log.warning("checkpoint_replay:=false: the memory / replay contents saved with the checkpoint are "
+                             "not restored; they refill from this step")
+            return
+        if saved["kind"] == "memory" and node.mem is not None:
+            try:
+                path, _ = node.mem.memory.restore(saved["request"], timeout=self.timeout)
+            except ServiceError as exc:
+                raise RuntimeError(f"cannot restore the memory saved with the checkpoint ({saved['path']}): {exc}; "
+                                   "resume with -p checkpoint_replay:=false to continue with an empty memory") from None
+            st = node.mem.stats()
+            node.log.info(f"memory restored from {path}: {st['identities']} identities, TM sets {st['tm_sets']}, "
+                          f"RTM {st['rtm_size']}")
+        elif saved["kind"] == "local" and replay is not None:
+            from .core.checkpoint import load_arrays
+            f = node.outputs.resume_path.parent / saved["file"]
+            try:
+                replay.load_state_arrays(load_arrays(f))
+            except (OSError, ValueError) as exc:
+                raise RuntimeError(f"cannot restore the replay buffer saved with the checkpoint ({f}): {exc}; "
+                                   "resume with -p checkpoint_replay:=false to continue with an empty one") from None
+            node.log.info(f"replay buffer restored from {f}: {len(replay)} transitions")
+        else:
+            raise RuntimeError(f"the checkpoint's {saved['kind']} replay contents do not fit this run's learner")
