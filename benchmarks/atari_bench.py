@@ -3,7 +3,11 @@
 
 Each run is one ``ros2 run comper_agent comper_node`` subprocess (embedded bring-up, its own
 ROS_DOMAIN_ID so parallel runs never answer each other's services), at most ``--parallel`` (2) at a
-time. When all runs are done (or with ``--report-only`` on an existing --out folder) it writes:
+time. A run stopped before its budget (Ctrl-C, a session's end: summary.json says complete false, or
+none yet) continues from its last checkpoint with ``resume`` when the bench is started again with the
+same arguments, memory or replay contents included (checkpoint_replay); a checkpoint without them is
+not continued (the run would go on from an empty memory): remove the run folder to start it again.
+When all runs are done (or with ``--report-only`` on an existing --out folder) it writes:
 
 * ``<out>/table.md`` + ``<out>/table.json``: per game and variant, the mean across seeds (with a
   bootstrap 95% confidence interval of that mean) of the run's mean of the last 10 training episodes
@@ -52,9 +56,26 @@ def run_id(game: str, variant: str, seed: int) -> str:
     return f"{variant}-{game}-s{seed}"
 
 
-def launch(args, game: str, variant: str, seed: int, domain: int) -> subprocess.Popen:
+def run_status(out: Path, rid: str) -> str:
+    """'done' (summary.json with complete true), 'continue' (stopped before its budget, with a checkpoint that
+    holds its memory / replay contents), 'new' (no checkpoint). ValueError for a stopped run whose checkpoint
+    lacks them (older code, or checkpoint_replay off): going on from an empty memory would change the protocol."""
+    d = out / "runs" / rid
+    if (d / "summary.json").exists() and json.loads((d / "summary.json").read_text()).get("complete"):
+        return "done"
+    ck = d / "checkpoints" / "latest.pt"
+    if not ck.exists():
+        return "new"
+    from comper_agent.core.checkpoint import load_checkpoint
+    if "replay" not in load_checkpoint(ck):
+        raise ValueError(f"{d} stopped before its budget and its checkpoint holds no memory / replay contents; "
+                         "remove the folder to run it again from the start")
+    return "continue"
+
+
+def launch(args, game: str, variant: str, seed: int, domain: int, resume: bool = False) -> subprocess.Popen:
     rid = run_id(game, variant, seed)
-    log = open(Path(args.out) / "logs" / f"{rid}.log", "wb")
+    log = open(Path(args.out) / "logs" / f"{rid}.log", "ab" if resume else "wb")
     base, params = args.named.get(variant, (variant, []))
     cmd = ["ros2", "run", "comper_agent", "comper_node", "--ros-args",
            "-p", f"algorithm:={base}", "-p", f"env_id:=ALE/{game}-v5", "-p", f"seed:={seed}",
@@ -69,9 +90,11 @@ def launch(args, game: str, variant: str, seed: int, domain: int) -> subprocess.
         cmd += ["-p", extra]
     for name, value in params:               # a named variant's own parameters come last, so they win
         cmd += ["-p", f"{name}:={value}"]
+    if resume:                               # the same parameters as the first session, from its checkpoint
+        cmd += ["-p", f"resume:={Path(args.out) / 'runs' / rid}"]
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                OMP_NUM_THREADS="1")
-    print(f"[bench] start {rid} (ROS_DOMAIN_ID {domain}): {' '.join(cmd)}", flush=True)
+    print(f"[bench] {'continue' if resume else 'start'} {rid} (ROS_DOMAIN_ID {domain}): {' '.join(cmd)}", flush=True)
     p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
     p.rid, p.t0, p.logf = rid, time.monotonic(), log
     return p
@@ -88,8 +111,9 @@ def progress_of(args, rid: str) -> str:
 def run_all(args) -> None:
     out = Path(args.out)
     (out / "logs").mkdir(parents=True, exist_ok=True)
-    todo = [(g, v, s) for g in args.games for v in args.variants for s in args.seeds
-            if args.force or not (out / "runs" / run_id(g, v, s) / "summary.json").exists()]
+    status = {(g, v, s): "new" if args.force else run_status(out, run_id(g, v, s))
+              for g in args.games for v in args.variants for s in args.seeds}
+    todo = [key for key, st in status.items() if st != "done"]
     print(f"[bench] {len(todo)} runs to do, {args.parallel} at a time, {args.frames} frames each", flush=True)
     running: list[subprocess.Popen] = []
     done = 0
@@ -99,7 +123,7 @@ def run_all(args) -> None:
         while todo and len(running) < args.parallel:
             g, v, s = todo.pop(0)
             dom = claim_domain()
-            p = launch(args, g, v, s, dom)
+            p = launch(args, g, v, s, dom, resume=status[(g, v, s)] == "continue")
             p.domain = dom
             running.append(p)
             i += 1
@@ -335,7 +359,10 @@ def main(argv=None) -> int:
                  "with --variant NAME=ALGORITHM:PARAM=VALUE (ALGORITHM one of those, NAME without '-')")
     Path(args.out).mkdir(parents=True, exist_ok=True)
     if not args.report_only:
-        run_all(args)
+        try:
+            run_all(args)
+        except ValueError as exc:
+            ap.error(str(exc))
     report(args)
     return 0
 
