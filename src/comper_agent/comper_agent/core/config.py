@@ -166,8 +166,8 @@ class ComcactConfig:
         False, "comcact: skip the QT step on a batch where the QT target is farther from the DDPG target (RMS over "
         "the batch) than the critic's own TD error", thesis="off (every update takes the QT step)",
         deviation="on = the QT step only where it is closer to the DDPG target than the critic already is; with "
-        "fresh labels (restore_batch, label_critic target) at DDPG's level on Walker2d-v4 and HalfCheetah-v4, below "
-        "it on Hopper-v4, ahead on none (docs/comcact.md)")
+        "fresh labels (restore_batch, label_critic target) at DDPG's level on Walker2d-v4, HalfCheetah-v4 and "
+        "InvertedDoublePendulum-v4, below it on Hopper-v4, ahead on none (docs/comcact.md)")
     critic_action_input: str = param(
         "second_hidden", "where the action enters the critic: second_hidden = concatenated to the "
         "(batch-normalised) first hidden layer's output, the input of the second hidden layer "
@@ -407,9 +407,11 @@ COMCACT_PROFILES: dict[str, dict[str, tuple]] = {
     "fresh_labels": dict(_FRESH),
     "fresh_labels_gate": {
         **_FRESH,
-        "qt_step_gate": (True, "docs/comcact.md, the QT-step gate (2026-12-02): on top of fresh labels, at DDPG's "
-                               "level on Walker2d-v4 (3 seeds) and HalfCheetah-v4 (5 seeds), below it on Hopper-v4; "
-                               "above fresh labels alone on the mean on both, intervals overlapping"),
+        "qt_step_gate": (True, "docs/comcact.md, the QT-step gate (2026-12-02, IDP 2026-12-03): on top of fresh "
+                               "labels, at DDPG's level on Walker2d-v4 (3 seeds), HalfCheetah-v4 (5 seeds) and "
+                               "InvertedDoublePendulum-v4 (3 seeds, at the ceiling, 0.4 % below DDPG), below it on "
+                               "Hopper-v4; above fresh labels alone on the mean on Walker2d-v4 and HalfCheetah-v4, "
+                               "intervals overlapping"),
     },
 }
 
