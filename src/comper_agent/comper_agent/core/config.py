@@ -161,7 +161,7 @@ class ComcactConfig:
         "state, so a weight below 1 makes it smaller relative to the DDPG steps); 0 = no QT step",
         thesis="1 (Algorithm 8 lines 29-34: a full second critic step)", minimum=0.0, maximum=1.0,
         deviation="< 1 damps the pull towards stale QT targets (method.md 6.4); 0.5 on top of fresh labels and "
-        "the gate on Hopper-v4: 2 of 3 seeds so far, no gain visible (docs/comcact.md)")
+        "the gate on Hopper-v4: below full weight, 3 seeds (docs/comcact.md)")
     qt_step_gate: bool = param(
         False, "comcact: skip the QT step on a batch where the QT target is farther from the DDPG target (RMS over "
         "the batch) than the critic's own TD error", thesis="off (every update takes the QT step)",
