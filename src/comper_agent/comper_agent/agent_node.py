@@ -329,7 +329,7 @@ class AgentNode(Node):
                     self.log.error(f"the reduction in flight did not finish: {exc}")
             self._final_records(rc)
             try:
-                self.save(final=True, replay=rc != 130)     # interrupted twice: no memory snapshot
+                self.save(final=True, replay=rc == 0)   # a service failed or Ctrl-C twice: weights and counters only
             except Exception as exc:
                 self.log.error(f"final checkpoint failed: {exc}")
             steps = self.step - start_step

@@ -44,19 +44,20 @@ class ExperienceCheckpoint:
         weights and counters only)."""
         node = self.node
         if node.mem is not None:
-            if node.mem.in_flight is not None:
-                node.mem.collect(wait=True)
-            self.quiesce()
             name = node.run_dir.replay_path(step, "memory").name
             embedded = node.embedded is not None and node.embedded.memory is not None
             request = name if embedded else f"{node.run_id}/{name}"
             try:
+                if node.mem.in_flight is not None:
+                    node.mem.collect(wait=True)
+                self.quiesce()
                 path, _ = node.mem.memory.snapshot(request, timeout=self.timeout)
-            except ServiceError as exc:
+            except ServiceError as exc:     # refused, or the memory node is gone: the checkpoint goes on without
                 if not self.warned:
                     self.warned = True
-                    node.log.warning(f"checkpoints hold no memory contents: the memory node refused its snapshot "
-                                     f"({exc}); give it -p snapshot_root:=DIR, or set checkpoint_replay:=false")
+                    node.log.warning(f"checkpoints hold no memory contents: no snapshot from the memory node ({exc}); "
+                                     "an external memory node needs -p snapshot_root:=DIR (or set "
+                                     "checkpoint_replay:=false)")
                 return None
             return {"kind": "memory", "request": request, "path": path, "what": f"the memory's snapshot {path}"}
         replay = getattr(node, "replay", None)
