@@ -275,7 +275,7 @@ class AgentNode(Node):
                 state["replay"] = saved
             path = self.outputs.save(state, self.step)
         self.log.info(f"{'final ' if final else ''}checkpoint: {path}"
-                      + (f" (with {saved['what']})" if saved is not None else ""))
+                      + (f" (with {self.experience.describe(saved)})" if saved is not None else ""))
         return path
 
     # ------------------------------------------------------------------------------ main loop

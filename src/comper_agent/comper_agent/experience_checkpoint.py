@@ -59,14 +59,20 @@ class ExperienceCheckpoint:
                                      "an external memory node needs -p snapshot_root:=DIR (or set "
                                      "checkpoint_replay:=false)")
                 return None
-            return {"kind": "memory", "request": request, "path": path, "what": f"the memory's snapshot {path}"}
+            return {"kind": "memory", "request": request, "path": path}
         replay = getattr(node, "replay", None)
         if replay is None:
             return None
         from .core.checkpoint import save_arrays
         f = save_arrays(node.run_dir.replay_path(step, "local"), replay.state_arrays())
-        return {"kind": "local", "file": f.name, "transitions": len(replay),
-                "what": f"the replay buffer, {len(replay)} transitions, {f.name}"}
+        return {"kind": "local", "file": f.name, "transitions": len(replay)}
+
+    @staticmethod
+    def describe(saved: dict) -> str:
+        """What a checkpoint's ``replay`` record holds, for the log."""
+        if saved["kind"] == "memory":
+            return f"the memory's snapshot {saved['path']}"
+        return f"the replay buffer, {saved['transitions']} transitions, {saved['file']}"
 
     def restore(self, saved: dict | None) -> None:
         """On resume, before anything is stored: the saved experience back into the memory node or the

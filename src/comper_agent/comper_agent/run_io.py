@@ -21,7 +21,6 @@ import math
 import os
 import random
 import shutil
-import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -51,15 +50,8 @@ def format_duration(seconds: float) -> str:
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    return path
+    from .core.checkpoint import write_atomic
+    return write_atomic(path, lambda f: f.write(text.encode("utf-8")))
 
 
 def _plain(x: Any) -> Any:
@@ -94,11 +86,14 @@ class RunDir:
     def checkpoint_path(self, step: int) -> Path:
         return self.checkpoints / f"step_{int(step):09d}.pt"
 
+    #: a checkpoint's replay contents beside step_<N>.pt: kind local (a learner's own replay buffer) ->
+    #: step_<N>.replay.npz, kind memory (the snapshot folder an embedded memory node writes; its snapshot_root
+    #: is the checkpoints folder) -> step_<N>.memory
+    REPLAY_SUFFIXES = {"local": ".replay.npz", "memory": ".memory"}
+
     def replay_path(self, step: int, kind: str) -> Path:
-        """Where a checkpoint's replay contents go: ``step_<N>.replay.npz`` (kind local: a learner's own
-        replay buffer) or the snapshot folder ``step_<N>.memory`` (kind memory: written by an embedded
-        memory node whose snapshot_root is the checkpoints folder)."""
-        return self.checkpoints / (self.checkpoint_path(step).stem + (".replay.npz" if kind == "local" else ".memory"))
+        """Where the checkpoint of `step` keeps its replay contents of `kind` (REPLAY_SUFFIXES)."""
+        return self.checkpoint_path(step).with_suffix(self.REPLAY_SUFFIXES[kind])
 
     def save_checkpoint(self, state: dict, step: int, keep_last: int = 3) -> Path:
         """Write ``step_<N>.pt`` and ``latest.pt`` atomically; keep the newest `keep_last` step files
@@ -109,14 +104,11 @@ class RunDir:
         if keep_last > 0:
             olds = sorted(self.checkpoints.glob("step_*.pt"))[:-keep_last]
             for p in olds:
-                for companion in (p, p.with_suffix(".replay.npz"), p.with_suffix(".memory")):
+                for companion in (p, *(p.with_suffix(x) for x in self.REPLAY_SUFFIXES.values())):
                     if companion.is_dir():
                         shutil.rmtree(companion, ignore_errors=True)
                     else:
-                        try:
-                            companion.unlink()
-                        except FileNotFoundError:
-                            pass
+                        companion.unlink(missing_ok=True)
         return path
 
 

@@ -14,13 +14,15 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["save_checkpoint", "load_checkpoint", "save_arrays", "load_arrays", "CHECKPOINT_FORMAT"]
+__all__ = ["save_checkpoint", "load_checkpoint", "save_arrays", "load_arrays", "write_atomic", "CHECKPOINT_FORMAT"]
 
 CHECKPOINT_FORMAT = 1
 
 
-def _write_atomic(path: Path, write) -> Path:
-    """write(f) into a temporary file beside `path` (its folder is created), fsync, rename."""
+def write_atomic(path: str | os.PathLike, write) -> Path:
+    """write(f) into a temporary binary file beside `path` (its folder is created), fsync, rename; the
+    temporary file is removed if anything fails. Returns the path."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -41,7 +43,7 @@ def _write_atomic(path: Path, write) -> Path:
 def save_checkpoint(path: str | os.PathLike, state: dict) -> Path:
     """Write `state` atomically to `path` (its folder is created). Returns the path."""
     payload = {"format": CHECKPOINT_FORMAT, "state": state}
-    return _write_atomic(Path(path), lambda f: torch.save(payload, f))
+    return write_atomic(Path(path), lambda f: torch.save(payload, f))
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
@@ -54,7 +56,7 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
 def save_arrays(path: str | os.PathLike, arrays: dict) -> Path:
     """Write numpy arrays to the .npz file `path` atomically (no pickled objects). Returns the path."""
     import numpy as np
-    return _write_atomic(Path(path), lambda f: np.savez(f, **arrays))
+    return write_atomic(Path(path), lambda f: np.savez(f, **arrays))
 
 
 def load_arrays(path: str | os.PathLike) -> dict:
