@@ -189,7 +189,8 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
         ros_node.create_subscription(EvaluationResult, f"/{name}/evaluations", evals[alg].append, SUMMARY_QOS)
         ros_node.create_subscription(TransitionBatch, f"/{name}/transitions", batches[alg].append, TRANSITIONS_QOS)
         extra = ["-p", f"algorithm:={alg}", "-p", "total_frames:=1500", "-p", "eval_every:=500",
-                 "-p", "eval_episodes:=2", "-p", "learning_starts:=200", "-p", "checkpoint_every:=0"]
+                 "-p", "eval_episodes:=2", "-p", "learning_starts:=200", "-p", "checkpoint_every:=0",
+                 "-p", "diagnostics_every:=50"]
         if alg != "comper":
             extra += ["-p", "n_step:=3"]    # dqn: windows drawn from the replay; comper_f: stored windows
         args = _args(tmp_path, alg, tag, *extra)
@@ -228,6 +229,13 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
         assert (t.value_labels.shape == (len(t),)) if alg != "dqn" else (t.value_labels.size == 0)
     mem = json.loads((tmp_path / "comper" / "summary.json").read_text())["memory"]
     assert mem["identities"] > 1000 and mem["rtm_size"] > 0
+    # qt_diagnostics: only the variant with a QT target writes them, every 50 updates once QT exists
+    diag = run_io.MetricsLog.read(tmp_path / "comper" / "metrics.jsonl", "qt_diagnostics")
+    assert len(diag) >= 3 and all(d["update"] % 50 == 0 and d["qt_version"] >= 1 for d in diag), diag[:2]
+    for d in diag:
+        assert d["qt_target_rmse"] >= 0 and d["td_rmse"] >= 0 and d["q_gap_mean"] >= 0 and d["set_size_mean"] >= 1
+        assert 0 < d["greedy_top_share"] <= 1 and 0 <= d["label_age_mean"] <= d["step"] and np.isfinite(d["label_bias"])
+    assert not any(run_io.MetricsLog.read(tmp_path / alg / "metrics.jsonl", "qt_diagnostics") for alg in ("dqn", "comper_f"))
     # comper_f with n_step 3: the memory holds 3-step windows (keys [s_t, a_t, return, s_t+3]); CartPole's
     # episodes end by termination (every window kept), so one identity per agent step as for one-step keys
     s = json.loads((tmp_path / "comper_f" / "summary.json").read_text())

@@ -1,4 +1,5 @@
 """COMPER / DQN learner (comper_agent.core.comper)."""
+import copy
 import sys
 from pathlib import Path
 
@@ -261,3 +262,39 @@ def test_profiles_name_existing_fields_with_a_source_and_auto_follows_the_task()
     assert resolve_profile("auto", "ALE/Freeway-v5") == "thesis"
     assert resolve_profile("auto", "CartPole-v1") == "classic_control"
     assert resolve_profile("data_efficient", "ALE/Asterix-v5") == "data_efficient"
+
+
+def test_qt_diagnostics_measure_qt_against_the_networks_own_bootstrap():
+    """ComperLearner.qt_diagnostics on a fixed batch against a reference computed here: QT equal to
+    max_a Q(s', a) has no error; QT and the stored labels shifted by 1 are off by gamma on every live row;
+    the TD error is the loss's own; the action statistics are those of argmax Q; nothing moves."""
+    lrn = ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp"}), obs_shape=(3,), n_actions=4)
+    rng = np.random.default_rng(3)
+    n = 64
+    term = np.zeros(n, bool)
+    term[:16] = True
+    b = Transitions(states=rng.normal(size=(n, 3)).astype(np.float32), actions=rng.integers(0, 4, n),
+                    rewards=(3 * rng.normal(size=n)).astype(np.float32),
+                    next_states=rng.normal(size=(n, 3)).astype(np.float32), terminated=term,
+                    truncated=np.zeros(n, bool))
+    with torch.no_grad():
+        v = lrn.q(torch.as_tensor(b.next_states)).max(1).values.numpy() * ~term
+        q = lrn.q(torch.as_tensor(b.states)).numpy()
+    b.value_labels = (v + 1.0).astype(np.float32)
+    exact = lrn.qt_diagnostics(b, v)
+    assert exact["qt_target_rmse"] == pytest.approx(0.0, abs=1e-6) and exact["qt_bias"] == pytest.approx(0.0, abs=1e-6)
+    y = np.clip(b.rewards, -1, 1) + 0.99 * ~term * v                    # reward_clip sign, as the loss
+    q_sa = q[np.arange(n), b.actions]
+    assert exact["td_rmse"] == pytest.approx(float(np.sqrt(np.mean((q_sa - y) ** 2))), rel=1e-5)
+    assert exact["label_bias"] == pytest.approx(1.0, rel=1e-5)          # live rows only
+    assert exact["q_gap_mean"] == pytest.approx(float((q.max(1) - q.min(1)).mean()), rel=1e-5)
+    greedy = q.argmax(1)
+    assert exact["greedy_top_share"] == pytest.approx(np.bincount(greedy).max() / n)
+    off = lrn.qt_diagnostics(b, v + 1.0)
+    assert off["qt_target_rmse"] == pytest.approx(0.99 * np.sqrt(48 / 64), rel=1e-5)
+    assert off["qt_bias"] == pytest.approx(1.0, rel=1e-5)
+    b.value_labels = np.zeros(0, np.float32)
+    assert np.isnan(lrn.qt_diagnostics(b, v)["label_bias"])
+    before = copy.deepcopy(lrn.q.state_dict())
+    lrn.qt_diagnostics(b, v)
+    assert all(torch.equal(before[k], p) for k, p in lrn.q.state_dict().items())

@@ -24,14 +24,15 @@ _COMMON = {"bringup": "embedded", "episode_end": "standard", "runs_root": "runs"
            "qt_trainer_node": "qt_trainer_node", "service_timeout_s": 120.0, "startup_timeout_s": 30.0,
            "transport_probe_calls": 200, "prefetch_batches": 32, "reduce_overlap": False,
            "eval_episodes": 10, "eval_seed": -1,
-           "checkpoint_replay": True}                      # added with the memory / replay in checkpoints
+           "checkpoint_replay": True,                      # added with the memory / replay in checkpoints
+           "diagnostics_every": 250}                       # comcact only before COMPER's qt_diagnostics
 
 # every parameter the nodes declared before the refactoring, with its default (record: comcact only,
 # publish_transitions: comper only, before; both nodes have both now)
 COMCACT = {**_COMMON, "algorithm": "comcact", "env_id": "InvertedPendulum-v4", "total_steps": 50_000,
            "warmup_steps": 0, "store_every": 10, "reduce_every": 10, "reduce_batch": 50_000, "qt_epochs": 0,
            "qt_targets": "local", "qt_wait_s": 2.0, "eval_every": 5_000, "eval_episodes": 10, "eval_seed": -1,
-           "checkpoint_every": 0, "progress_period_s": 5.0, "diagnostics_every": 250, "restore_batch": False,
+           "checkpoint_every": 0, "progress_period_s": 5.0, "restore_batch": False,
            "mode": "lockstep", "num_actors": 1, "policy_period_s": 1.0, "replay_ratio": 1.0, "rate_buffer_steps": 200,
            "profile": "thesis"}                                               # added with COMCACT_PROFILES
 COMPER = {**_COMMON, "algorithm": "comper", "env_id": "ALE/Freeway-v5", "total_frames": 100_000, "max_steps": 0,

@@ -37,6 +37,7 @@ from .experience_checkpoint import ExperienceCheckpoint
 from .recording_link import RecordingLink, record_topics
 from .memory_link import MemoryLink
 from .node_config import AgentRunConfig, redefault
+from .qt_diagnostics import QTDiagnostics
 
 __all__ = ["AgentNode", "AgentRunConfig", "run_main", "redefault", "episode_over", "SUMMARY_QOS"]
 
@@ -303,6 +304,7 @@ class AgentNode(Node):
                 return 1
         run.open_logs(self._run_config(), self.CSV_COLUMNS, self.progress_total, self.step)
         self.metrics, self.csv, self.scalars, self.progress = run.metrics, run.csv, run.scalars, run.progress
+        self.diagnostics = QTDiagnostics(p.diagnostics_every, self.metrics, self.scalars, self.ptimers)
         start_step = self.step
         self.log.info(f"{self._start_line()}; run dir {run.dir.path}  (Ctrl-C stops and saves a checkpoint)")
         if not self.scalars.available and p.tensorboard:

@@ -389,8 +389,11 @@ class ComcactNode(AgentNode):
                     with self.ptimers("qt_predict"):
                         targets = qt.predict_transitions(batch, transition_keys)
             p = self.p
-            if targets is not None and p.diagnostics_every and self.update_count % p.diagnostics_every == 0:
-                self._qt_diagnostics(batch, counts, targets)
+            if targets is not None and self.diagnostics.due(self.update_count):
+                # after the DDPG step on the batch, before the QT step
+                self.diagnostics.record(self.learner, batch, counts, targets, step=self.step, update=self.update_count,
+                                        x=self.step, qt_version=int(self.mem.qt_version), rtm_size=int(self.rtm_size),
+                                        restored=int(self.mem.restored))
             with self.ptimers("learner"):
                 if targets is not None:
                     self.last_update.update(self.learner.qt_critic_step(batch, targets))
@@ -406,24 +409,6 @@ class ComcactNode(AgentNode):
         self.update_count += 1
         if self.update_count % 250 == 0:
             self.scalars.scalars(self.last_update, self.step, prefix="train/")
-
-    def _qt_diagnostics(self, batch: Transitions, counts: np.ndarray, targets: np.ndarray) -> None:
-        """One 'qt_diagnostics' record (after the DDPG step on the batch, before the QT step): the QT
-        target's distance to the DDPG target, the critic's TD error, the label age (steps since the
-        sampled entries' representatives were stored: COMCACT never relabels, so for a one-member
-        set that is its label's age) and the sampled set sizes (uniform RTM draws, so their
-        fraction with more than one member estimates RTM's)."""
-        with self.ptimers("learner"):
-            rec = self.learner.qt_diagnostics(batch, targets)
-        age = self.step - np.asarray(batch.steps, np.float64) if batch.steps.size else np.zeros(0)
-        cnt = np.asarray(counts, np.float64)
-        rec.update(label_age_mean=float(age.mean()) if age.size else float("nan"),
-                   label_age_max=float(age.max()) if age.size else float("nan"),
-                   set_size_mean=float(cnt.mean()) if cnt.size else float("nan"),
-                   multi_member_fraction=float((cnt > 1).mean()) if cnt.size else float("nan"),
-                   qt_version=int(self.mem.qt_version), rtm_size=int(self.rtm_size), restored=int(self.mem.restored))
-        self.metrics.write("qt_diagnostics", step=self.step, update=self.update_count, **rec)
-        self.scalars.scalars({k: v for k, v in rec.items() if isinstance(v, float)}, self.step, prefix="qt/")
 
     # ------------------------------------------------------------------------------ evaluation
     def _eval_action(self, obs):

@@ -476,6 +476,10 @@ class ComperNode(AgentNode):
                     from comper_memory.core import transition_keys
                     with self.ptimers("qt_predict"):
                         targets = qt.predict_transitions(batch, transition_keys)
+                if self.diagnostics.due(self.updates):     # before the update on the batch
+                    self.diagnostics.record(self.learner, batch, counts, targets, step=self.step, update=self.updates,
+                                            x=self.frames, frames=self.frames, qt_version=int(self.mem.qt_version),
+                                            rtm_size=int(self.rtm_size))
             with self.ptimers("learner"):
                 self.last_update = self.learner.update(batch, targets)
                 if p.restore_batch:

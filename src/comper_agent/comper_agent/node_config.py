@@ -111,6 +111,12 @@ class AgentRunConfig:
         choices=("local", "rtm"))
     qt_wait_s: float = param(2.0, "after a reduction, seconds to wait for the QTModel of that version to "
                                   "arrive (variants with a QT target)", minimum=0.0)
+    diagnostics_every: int = param(
+        250, "updates between 'qt_diagnostics' records in metrics.jsonl (and TensorBoard qt/...), for the variants "
+        "with a QT target: on the update's batch, QT's bootstrap against the one the learner's own networks give "
+        "(comcact: the DDPG target; comper, comper_m: max_a Q(s', a)), the TD error, the sampled entries' age "
+        "and set sizes; comper also the Q gap between actions and the share of the batch on one greedy action "
+        "(docs/comcact.md, docs/comper.md); 0 = off", minimum=0)
     eval_episodes: int = param(10, "full episodes per evaluation (greedy policy, a separate environment in "
                                    "this process)", thesis="10 (chapter 6)", minimum=1)
     eval_seed: int = param(
@@ -222,10 +228,6 @@ class ComcactNodeConfig(AgentRunConfig):
     checkpoint_every: int = param(
         0, "steps between checkpoints (0 = at every evaluation point); a final one is always written",
         minimum=0)
-    diagnostics_every: int = param(
-        250, "comcact: updates between 'qt_diagnostics' records in metrics.jsonl (and TensorBoard qt/...): the "
-        "QT step's target against the DDPG target on the update's batch, the critic's own TD error, the "
-        "sampled entries' label age and set sizes (docs/comcact.md); 0 = off", minimum=0)
     mode: str = param(
         "lockstep", "lockstep = one environment step, then one update, in this node (Algorithm 8); async = actor "
         "nodes (actor_node: simulation + the current policy) store into the memory while this node samples and "

@@ -223,6 +223,38 @@ class ComperLearner:
             boot = self._t(qt_targets, torch.float32).reshape(-1)
         return r + discount * not_done * boot
 
+    @torch.no_grad()
+    def qt_diagnostics(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
+        """How QT's bootstrap compares on this batch (no parameter moves) with the one Q-learning would
+        take from the network being trained, V(s') = max_a Q(s', a) (0 when terminated): the value label
+        a re-store writes now. y_QT and y_V are :meth:`targets` with either bootstrap.
+
+        qt_target_rmse: RMS of y_QT - y_V; td_rmse: RMS of Q(s, a) - y_QT (the error this update's loss
+        sees); qt_bias: mean of QT(tau) - V(s') over non-terminal rows (positive: QT above the network);
+        label_bias: the same for the sampled entries' stored value labels (how stale they are; NaN
+        without labels); q_gap_mean: mean over the batch's states of max_a Q(s, a) - min_a Q(s, a);
+        greedy_top_share: the share of the batch's states whose greedy action is the batch's most
+        common one (1 = one action in every sampled state)."""
+        s = self._t(batch.states)
+        live = self._t(batch.terminated, torch.float32) < 0.5
+        v_next = self.q(self._t(batch.next_states)).max(dim=1).values * live
+        qt = self._t(qt_targets, torch.float32).reshape(-1)
+        y_qt, y_v = self.targets(batch, qt), self.targets(batch, v_next.cpu().numpy())
+        q = self.q(s)
+        q_sa = q.gather(1, self._t(batch.actions, torch.int64).reshape(-1, 1)).squeeze(1)
+        greedy = q.argmax(dim=1)
+
+        def bias(values: torch.Tensor) -> float:
+            return float((values - v_next)[live].mean()) if bool(live.any()) else 0.0
+
+        labelled = batch.value_labels.size == len(batch)
+        return {"qt_target_rmse": float(torch.sqrt(torch.mean((y_qt - y_v) ** 2))),
+                "td_rmse": float(torch.sqrt(torch.mean((q_sa - y_qt) ** 2))),
+                "qt_bias": bias(qt),
+                "label_bias": bias(self._t(batch.value_labels, torch.float32)) if labelled else float("nan"),
+                "q_gap_mean": float((q.max(dim=1).values - q.min(dim=1).values).mean()),
+                "greedy_top_share": float(torch.bincount(greedy).max()) / max(len(batch), 1)}
+
     def _loss(self, batch: Transitions, y: torch.Tensor) -> torch.Tensor:
         q = self.q(self._t(batch.states))
         a = self._t(batch.actions, torch.int64).reshape(-1, 1)

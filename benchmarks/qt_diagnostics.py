@@ -1,0 +1,109 @@
+"""Plot the learners' QT diagnostics over runs: what the QT target pulls the value network towards,
+against the bootstrap the learner's own networks give, and why (label age, set sizes).
+
+Reads the 'qt_diagnostics' records comcact_node and comper_node write to <run dir>/metrics.jsonl every
+`diagnostics_every` updates (docs/comcact.md, docs/comper.md) and draws, per run, against the agent step:
+  1. qt_target_rmse (QT target vs the networks' own target on the update's batch: COMCACT's DDPG
+     target, COMPER's max_a Q(s', a)) and the TD error on the same batch (critic_td_rmse, td_rmse);
+  2. the mean age of the sampled entries (steps since their transition was first stored);
+  3. the mean sampled set size and the fraction of sampled entries with more than one member;
+  4. (comper_node runs) the share of the batch's states on its most common greedy action and the mean
+     max-min Q gap: a policy collapsing onto one action shows here during the run.
+It also prints, per run, the medians over the second half of the run (issue #15's target compares
+qt_target_rmse with the TD error there), and for COMCACT, from the last 'progress' record, how many QT critic
+steps the run took and how many `qt_step_gate` skipped.
+
+    python benchmarks/qt_diagnostics.py runs/comcact-Hopper-v4-s0-* --out docs/results/comcact_diagnostics.png
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def read(run: Path) -> tuple[list[dict], dict | None]:
+    """The run's qt_diagnostics records, and its last progress record's learner_updates, qt_steps_taken and
+    qt_steps_gated (None if no progress record has them)."""
+    out, last = [], None
+    with open(run / "metrics.jsonl") as f:
+        for line in f:
+            if '"qt_diagnostics"' in line:
+                rec = json.loads(line)
+                if rec.get("kind") == "qt_diagnostics":
+                    out.append(rec)
+            elif '"qt_steps_taken"' in line:
+                last = json.loads(line)
+    keys = ("learner_updates", "qt_steps_taken", "qt_steps_gated")
+    counts = None if last is None else {k: int(last[k]) for k in keys}
+    return out, counts
+
+
+def second_half_medians(recs: list[dict]) -> dict:
+    if not recs:
+        return {}
+    last = recs[-1]["step"]
+    half = [r for r in recs if r["step"] >= last / 2]
+    keys = ("qt_target_rmse", "critic_td_rmse", "td_rmse", "qt_bias", "label_age_mean", "set_size_mean",
+            "multi_member_fraction", "greedy_top_share", "q_gap_mean")
+    return {k: float(np.median([r[k] for r in half])) for k in keys if k in half[-1]}
+
+
+def td_error(rec: dict) -> float:
+    """The TD error of the record's learner: COMCACT's critic, COMPER's Q-network."""
+    return rec["critic_td_rmse"] if "critic_td_rmse" in rec else rec["td_rmse"]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path, help="run directories of comcact_node or comper_node")
+    ap.add_argument("--out", type=Path, default=Path("qt_diagnostics.png"), help="the figure to write")
+    args = ap.parse_args(argv)
+    data = {r.name: read(r) for r in args.runs if (r / "metrics.jsonl").exists()}
+    data = {k: v for k, v in data.items() if v[0]}
+    if not data:
+        print("no qt_diagnostics records in these runs (comcact_node or comper_node with a QT target and "
+              "diagnostics_every > 0)", file=sys.stderr)
+        return 1
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    policy = any("greedy_top_share" in recs[0] for recs, _ in data.values())
+    fig, axes = plt.subplots(1, 4 if policy else 3, figsize=(20 if policy else 15, 4))
+    for i, (name, (recs, counts)) in enumerate(sorted(data.items())):
+        col = f"C{i}"
+        step = [r["step"] for r in recs]
+        axes[0].plot(step, [r["qt_target_rmse"] for r in recs], color=col, label=f"{name}: QT vs own target")
+        axes[0].plot(step, [td_error(r) for r in recs], color=col, ls="--", label=f"{name}: TD error")
+        axes[1].plot(step, [r["label_age_mean"] for r in recs], color=col, label=name)
+        axes[2].plot(step, [r["set_size_mean"] for r in recs], color=col, label=f"{name}: members per entry")
+        axes[2].plot(step, [r["multi_member_fraction"] for r in recs], color=col, ls=":",
+                     label=f"{name}: fraction with > 1 member")
+        if "greedy_top_share" in recs[0]:
+            axes[3].plot(step, [r["greedy_top_share"] for r in recs], color=col, label=f"{name}: top greedy share")
+            axes[3].plot(step, [r["q_gap_mean"] for r in recs], color=col, ls=":", label=f"{name}: max-min Q")
+        med = second_half_medians(recs)
+        print(f"{name}: second half medians " + ", ".join(f"{k} {v:.3g}" for k, v in med.items()))
+        if counts:
+            print(f"{name}: {counts['qt_steps_taken']} QT steps in {counts['learner_updates']} updates, "
+                  f"{counts['qt_steps_gated']} skipped by qt_step_gate")
+    axes[0].set(title="RMS distance on the update's batch", xlabel="agent step", yscale="log")
+    axes[1].set(title="age of the sampled entries (steps)", xlabel="agent step")
+    axes[2].set(title="sampled set sizes", xlabel="agent step")
+    if policy:
+        axes[3].set(title="greedy actions on the batch (comper_node)", xlabel="agent step")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=110)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
