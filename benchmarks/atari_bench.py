@@ -45,6 +45,7 @@ from pathlib import Path
 from comper_agent.core.protocol import protocol_summary
 from comper_agent.run_io import MetricsLog
 from learning_bench import claim_domain, parse_variants, release_domain   # one claim registry for every run
+from bench_args import raise_on_sigterm, stop_runs
 
 import numpy as np
 
@@ -116,9 +117,21 @@ def run_all(args) -> None:
     todo = [key for key, st in status.items() if st != "done"]
     print(f"[bench] {len(todo)} runs to do, {args.parallel} at a time, {args.frames} frames each", flush=True)
     running: list[subprocess.Popen] = []
+    try:
+        _run_queue(args, todo, status, running)
+    except KeyboardInterrupt:
+        # the runs in progress save a final checkpoint with their memory (a 100,000-frame COMPER run's
+        # snapshot is ~1 GB): started again with the same arguments, the bench continues them
+        stop_runs(running, 600.0)
+        for p in running:
+            p.logf.close()
+            release_domain(p.domain)
+        raise
+
+
+def _run_queue(args, todo: list, status: dict, running: list) -> None:
     done = 0
     last_report = time.monotonic()
-    i = 0
     while todo or running:
         while todo and len(running) < args.parallel:
             g, v, s = todo.pop(0)
@@ -126,7 +139,6 @@ def run_all(args) -> None:
             p = launch(args, g, v, s, dom, resume=status[(g, v, s)] == "continue")
             p.domain = dom
             running.append(p)
-            i += 1
         time.sleep(2.0)
         for p in list(running):
             if p.poll() is not None:
@@ -359,10 +371,15 @@ def main(argv=None) -> int:
                  "with --variant NAME=ALGORITHM:PARAM=VALUE (ALGORITHM one of those, NAME without '-')")
     Path(args.out).mkdir(parents=True, exist_ok=True)
     if not args.report_only:
+        raise_on_sigterm()
         try:
             run_all(args)
         except ValueError as exc:
             ap.error(str(exc))
+        except KeyboardInterrupt:
+            print("[bench] interrupted: start it again with the same arguments to continue the unfinished runs",
+                  flush=True)
+            return 130
     report(args)
     return 0
 

@@ -1,10 +1,11 @@
-"""Command-line options and process handling shared by the memory benchmarks (imported from the scripts' own folder)."""
+"""Command-line options and process handling shared by the benchmarks (imported from the scripts' own folder)."""
 from __future__ import annotations
 
 import argparse
 import os
 import signal
 import subprocess
+import time
 
 
 def add_blas_threads(ap: argparse.ArgumentParser) -> None:
@@ -21,9 +22,50 @@ def apply_blas_threads(args: argparse.Namespace) -> None:
 
 def stop_node(proc: subprocess.Popen, timeout: float = 20.0) -> None:
     """SIGINT to a node started with start_new_session=True (its whole process group), SIGKILL after timeout."""
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGINT)
+    stop_nodes([proc], timeout)
+
+
+def _signal_group(proc: subprocess.Popen, sig: int) -> None:
+    try:
+        os.killpg(proc.pid, sig)
+    except ProcessLookupError:
+        pass
+
+
+def stop_nodes(procs: list[subprocess.Popen], timeout: float) -> None:
+    """Stop nodes started with start_new_session=True (a terminal's Ctrl-C does not reach them): SIGINT to
+    every process group at once, so each node saves its final checkpoint and summary as on its own Ctrl-C,
+    then SIGKILL to any still running after `timeout` seconds. An interrupt while waiting sends a second
+    SIGINT (the nodes' quick stop) and waits at most 30 s more."""
+    live = [p for p in procs if p.poll() is None]
+    for p in live:
+        _signal_group(p, signal.SIGINT)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and any(p.poll() is None for p in live):
         try:
-            proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
+            time.sleep(0.2)
+        except KeyboardInterrupt:
+            for p in live:
+                if p.poll() is None:
+                    _signal_group(p, signal.SIGINT)
+            deadline = min(deadline, time.monotonic() + 30.0)
+    for p in live:
+        if p.poll() is None:
+            _signal_group(p, signal.SIGKILL)
+            p.wait()
+
+
+def stop_runs(procs: list[subprocess.Popen], timeout: float) -> None:
+    """A benchmark's Ctrl-C or SIGTERM: the runs in progress get their own Ctrl-C (final checkpoint and
+    summary) instead of running on without the benchmark in sessions of their own."""
+    if procs:
+        print(f"[bench] interrupted: stopping {len(procs)} run(s) in progress (each saves a final checkpoint; "
+              f"up to {timeout:.0f} s, Ctrl-C again to stop them sooner)", flush=True)
+        stop_nodes(procs, timeout)
+
+
+def raise_on_sigterm() -> None:
+    """SIGTERM ends a benchmark as Ctrl-C does (KeyboardInterrupt), so it stops its nodes first."""
+    def _interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+    signal.signal(signal.SIGTERM, _interrupt)

@@ -16,6 +16,8 @@ seeds with a bootstrap 95% confidence interval of the seed means, and how many r
     python benchmarks/learning_bench.py --tasks Hopper-v4 --total-steps 5000 --eval-every 5000 --tag speed
 
 Writes <out>/<tag>/{results.md, results.json, curves_<task>.png, runs/<run_id>/..., logs/<run_id>.log}.
+Ctrl-C or SIGTERM stops the runs in progress as their own Ctrl-C would (final checkpoint and summary, at
+most 2 minutes) and reports what finished; a run started again begins afresh.
 """
 from __future__ import annotations
 
@@ -29,6 +31,7 @@ import sys
 import time
 from pathlib import Path
 
+from bench_args import raise_on_sigterm, stop_nodes, stop_runs
 from comper_agent.run_io import MetricsLog
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -192,9 +195,21 @@ def run_all(args, base: Path) -> None:
     print(f"[bench] {len(jobs)} runs ({len(args.tasks)} tasks x {len(args.algorithms)} algorithms x "
           f"{args.seeds} seeds), {args.total_steps} steps each, {args.parallel} at a time; outputs in {base}",
           flush=True)
-    running, done = [], 0
+    running: list[dict] = []
     t_start = time.monotonic()
-    last_status = 0.0
+    try:
+        _run_jobs(args, base, jobs, running)
+    except KeyboardInterrupt:
+        stop_runs([r["proc"] for r in running], 120.0)
+        for r in running:
+            r["log"].close()
+            release_domain(r["domain"])
+        raise
+    print(f"[bench] all runs finished in {time.monotonic() - t_start:.0f} s", flush=True)
+
+
+def _run_jobs(args, base: Path, jobs: list, running: list) -> None:
+    done, last_status = 0, 0.0
     while jobs or running:
         while jobs and len(running) < args.parallel:
             a, t, s = jobs.pop(0)
@@ -207,12 +222,8 @@ def run_all(args, base: Path) -> None:
         for r in list(running):
             rc = r["proc"].poll()
             if rc is None and time.monotonic() - r["t0"] > args.timeout_s:
-                os.killpg(r["proc"].pid, 2)
-                try:
-                    rc = r["proc"].wait(60)
-                except subprocess.TimeoutExpired:
-                    os.killpg(r["proc"].pid, 9)
-                    rc = r["proc"].wait()
+                stop_nodes([r["proc"]], 60.0)
+                rc = r["proc"].returncode
             if rc is not None:
                 r["log"].close()
                 release_domain(r["domain"])
@@ -229,7 +240,6 @@ def run_all(args, base: Path) -> None:
                 if prog:
                     print(f"[bench]   {r['rid']}: step {prog[-1]['step']}, {prog[-1]['steps_per_s']:.0f} steps/s",
                           flush=True)
-    print(f"[bench] all runs finished in {time.monotonic() - t_start:.0f} s", flush=True)
 
 
 def final_mean(evals, every: int, total: int, k: int) -> float | None:
@@ -391,6 +401,7 @@ def main(argv=None) -> int:
     base = Path(args.out) / args.tag
     base.mkdir(parents=True, exist_ok=True)
     if not args.report_only:
+        raise_on_sigterm()
         try:
             run_all(args, base)
         except KeyboardInterrupt:

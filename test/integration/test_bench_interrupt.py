@@ -1,0 +1,47 @@
+"""A benchmark stopped with SIGTERM (or Ctrl-C) stops the runs it started: they run in sessions of their
+own (a terminal's Ctrl-C misses them), so without this they went on without the benchmark, still holding
+a ROS domain the next benchmark could take. Here learning_bench starts one real comper_node run
+(CartPole-v1, dqn), gets SIGTERM once the run is under way, and the run ends as on its own Ctrl-C."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from conftest import ROOT
+
+
+def _node_pids(marker: str) -> list[int]:
+    out = subprocess.run(["pgrep", "-f", marker], capture_output=True, text=True).stdout.split()
+    return [int(p) for p in out if int(p) != os.getpid()]
+
+
+def test_sigterm_to_the_bench_stops_its_runs_with_their_final_checkpoint(tmp_path):
+    out = tmp_path / "bench"
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "learning_bench.py"), "--tasks", "CartPole-v1",
+           "--algorithms", "dqn", "--seeds", "1", "--total-steps", "200000", "--eval-every", "0",
+           "--parallel", "1", "--out", str(out), "--tag", "t"]
+    bench = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                             start_new_session=True)
+    run = out / "t" / "runs" / "dqn-CartPole-v1-s0"
+    try:
+        deadline = time.monotonic() + 120
+        while not (run / "metrics.jsonl").exists() or "progress" not in (run / "metrics.jsonl").read_text():
+            assert bench.poll() is None and time.monotonic() < deadline, "the run never got going"
+            time.sleep(0.5)
+        assert _node_pids(str(run.parent)), "no node process found for the run"
+        bench.send_signal(signal.SIGTERM)
+        log, _ = bench.communicate(timeout=150)
+    finally:
+        if bench.poll() is None:
+            os.killpg(bench.pid, signal.SIGKILL)
+    assert "interrupted: stopping 1 run(s) in progress" in log, log
+    assert not _node_pids(str(run.parent)), "the run's node outlived the benchmark"
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["complete"] is False and 0 < summary["steps"] < 200000
+    assert (run / "checkpoints" / "latest.pt").exists()
+    claims = Path(os.environ.get("TMPDIR", "/tmp")) / "comper-ros-domains"    # learning_bench.DOMAIN_CLAIMS
+    held = [f.name for f in claims.glob("*") if f.read_text().strip() == str(bench.pid)]
+    assert not held, f"ROS domain(s) {held} still claimed by the stopped benchmark"
