@@ -231,8 +231,8 @@ class ComperLearner:
 
         qt_target_rmse: RMS of y_QT - y_V; td_rmse: RMS of Q(s, a) - y_QT (the error this update's loss
         sees); qt_bias: mean of QT(tau) - V(s') over non-terminal rows (positive: QT above the network);
-        label_bias: the same for the sampled entries' stored value labels (how stale they are; NaN
-        without labels); q_gap_mean: mean over the batch's states of max_a Q(s, a) - min_a Q(s, a);
+        label_bias: the same for the value labels the sampled entries carry (RTM: QT's prediction from
+        the entry's last reduction; TM: the set's newest label; NaN without labels); q_gap_mean: mean over the batch's states of max_a Q(s, a) - min_a Q(s, a);
         greedy_top_share: the share of the batch's states whose greedy action is the batch's most
         common one (1 = one action in every sampled state)."""
         s = self._t(batch.states)
