@@ -407,11 +407,11 @@ COMCACT_PROFILES: dict[str, dict[str, tuple]] = {
     "fresh_labels": dict(_FRESH),
     "fresh_labels_gate": {
         **_FRESH,
-        "qt_step_gate": (True, "docs/comcact.md, the QT-step gate (2026-12-02, IDP 2026-12-03): on top of fresh "
-                               "labels, at DDPG's level on Walker2d-v4 (3 seeds), HalfCheetah-v4 (5 seeds) and "
-                               "InvertedDoublePendulum-v4 (3 seeds, at the ceiling, 0.4 % below DDPG), below it on "
-                               "Hopper-v4; above fresh labels alone on the mean on Walker2d-v4 and HalfCheetah-v4, "
-                               "intervals overlapping"),
+        "qt_step_gate": (True, "docs/comcact.md, the QT-step gate (2026-12-02, IDP and 5 Walker2d seeds "
+                               "2026-12-03): on top of fresh labels, at DDPG's level on Walker2d-v4 and "
+                               "HalfCheetah-v4 (5 seeds each) and InvertedDoublePendulum-v4 (3 seeds, at the "
+                               "ceiling, 0.4 % below DDPG), below it on Hopper-v4; above fresh labels alone on the "
+                               "mean at 50,000 steps on Walker2d-v4 and HalfCheetah-v4, intervals overlapping"),
     },
 }
 
