@@ -32,19 +32,21 @@ def final_state(run: Path, batches: int, seed: int) -> dict:
     from comper_agent.core.config import ComperConfig
     from comper_agent.core.qt import QTModel
     from comper_agent.qt_diagnostics import sampled_entry_stats
+    from comper_agent.run_io import resolve_checkpoint
     from comper_memory.core import CompactMemory, MemoryConfig, transition_keys
     from comper_msgs_py.params import config_from_dict
 
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     if cfg["algorithm"] not in ("comper", "comper_m"):
         raise ValueError(f"{run}: algorithm {cfg['algorithm']} has no QT target")
-    state = load_checkpoint(run / "checkpoints" / "latest.pt")
+    ckpt = resolve_checkpoint(run)
+    state = load_checkpoint(ckpt)
     replay = state.get("replay") or {}
     if replay.get("kind") != "memory":
         raise ValueError(f"{run}: its last checkpoint holds no memory snapshot (checkpoint_replay)")
     snap = Path(replay["path"])
-    if not snap.exists():                      # a run folder moved since: the snapshot beside latest.pt
-        snap = run / "checkpoints" / replay["request"]
+    if not snap.exists():                      # a run folder moved since: the snapshot beside the checkpoint
+        snap = ckpt.parent / replay["request"]
     torch.set_num_threads(1)
     learner = ComperLearner(config_from_dict(ComperConfig, cfg["learner"]),
                             obs_shape=tuple(cfg["env"]["observation_shape"]), n_actions=cfg["env"]["num_actions"])
@@ -64,8 +66,9 @@ def final_state(run: Path, batches: int, seed: int) -> dict:
         rec.update(sampled_entry_stats(step, got.transitions, got.counts))
         recs.append(rec)
     out = {k: float(np.nanmean([r[k] for r in recs])) for k in recs[0]}
+    st = memory.stats()
     return {"run": run.name, "step": step, "frames": int(state["counters"].get("frames", 0)), "source": source,
-            "batches": batches, **out, "memory": {k: memory.stats()[k] for k in ("identities", "tm_sets", "rtm_size")}}
+            "batches": batches, **out, "memory": {k: st[k] for k in ("identities", "tm_sets", "rtm_size")}}
 
 
 def main(argv=None) -> int:
