@@ -257,3 +257,47 @@ def test_label_critic_target_labels_with_the_target_networks():
     np.testing.assert_allclose(target.value_labels(b), (target.td_targets(b).numpy() - b.rewards) / 0.99, atol=1e-4)
     assert np.all(target.value_labels(b)[:4] == 0.0)
     assert np.abs(online.value_labels(b) - target.value_labels(b))[4:].max() > 1e-4
+
+
+def test_actor_preact_l2_adds_its_penalty_to_the_actor_loss_and_gradient():
+    """The actor's loss with actor_preact_l2 = lam is -mean Q(s, mu(s)) + lam mean x^2 (x: the output layer's
+    value before tanh); on the output bias its gradient differs from lam = 0's by 2 lam / (B D) sum_i x_i."""
+    lam, b = 0.05, batch(seed=5)
+    s = torch.as_tensor(b.states)
+    grads, losses = {}, {}
+    for weight in (0.0, lam):
+        lrn = learner(actor_preact_l2=weight)
+        params = {k: p.detach() for k, p in lrn.critic.named_parameters()}
+        loss, saturated = lrn._actor_loss(s, params)
+        loss.backward()
+        grads[weight], losses[weight] = lrn.actor.out.bias.grad.clone(), loss.item()
+        with torch.no_grad():
+            pre = lrn.actor.out(lrn.actor.body(s))
+            q = lrn.critic(s, lrn.actor.action_center + lrn.actor.action_half_range * torch.tanh(pre))
+        assert float(saturated) == pytest.approx(float(torch.mean((pre.abs() > 2.65).float())))
+    assert losses[0.0] == pytest.approx(float(-q.mean()), rel=1e-5)
+    assert losses[lam] == pytest.approx(float(-q.mean() + lam * torch.mean(pre ** 2)), rel=1e-5)
+    expected = 2 * lam / pre.numel() * pre.sum(0)
+    torch.testing.assert_close(grads[lam] - grads[0.0], expected, rtol=1e-4, atol=1e-8)
+
+
+def test_actor_preact_l2_brings_a_saturated_actor_back_where_the_critic_reaches_it():
+    """An actor whose every output sits on tanh's flat end gets no gradient from the critic: without the
+    penalty updates leave it where it is; with it the outputs come back off the bounds."""
+    b = batch(seed=6)
+    s = torch.as_tensor(b.states)
+    result = {}
+    for weight in (0.0, 1e-3):
+        lrn = learner(actor_preact_l2=weight)
+        with torch.no_grad():
+            lrn.actor.out.bias.fill_(40.0)
+        before = lrn.actor.out.bias.detach().clone()
+        first = lrn.update(b)
+        for _ in range(200):
+            lrn.update(b)
+        with torch.no_grad():
+            result[weight] = (first["actor_saturation"], float(lrn.actor.pre_activation(s).abs().mean()),
+                              float((lrn.actor.out.bias - before).abs().max()))
+    assert result[0.0][0] == 1.0 and result[1e-3][0] == 1.0
+    assert result[0.0][2] == 0.0                 # no gradient reaches a saturated actor
+    assert result[1e-3][1] < 0.5 * result[0.0][1]

@@ -173,11 +173,16 @@ class ComcactLearner:
         qs = self.critic.all_heads(s, a)
         return sum(torch.mean((qi - y) ** 2) for qi in qs), qs[0]
 
-    def _actor_loss(self, s: torch.Tensor, critic_params: dict) -> torch.Tensor:
-        """-mean Q(s, mu(s)) with the critic's weights given as detached tensors: the backward pass
-        reaches the actor's weights only (the critic is still differentiated with respect to its
-        input), without toggling requires_grad on the critic, which a compiled graph would guard on."""
-        return -functional_call(self.critic, critic_params, (s, self.actor(s))).mean()
+    def _actor_loss(self, s: torch.Tensor, critic_params: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """(-mean Q(s, mu(s)) + actor_preact_l2 x mean x^2, share of saturated outputs), x = the actor's output
+        before tanh, saturated = |x| > 2.65 (within 1 % of a bound). The critic's weights come as detached
+        tensors: the backward pass reaches the actor's weights only (the critic is still differentiated with
+        respect to its input), without toggling requires_grad on the critic, which a compiled graph would guard on."""
+        pre = self.actor.pre_activation(s)
+        loss = -functional_call(self.critic, critic_params, (s, self.actor.squash(pre))).mean()
+        if self.config.actor_preact_l2 > 0.0:
+            loss = loss + self.config.actor_preact_l2 * torch.mean(pre ** 2)
+        return loss, torch.mean((pre.detach().abs() > 2.65).float())
 
     def update(self, batch: Transitions) -> dict:
         """One DDPG update on `batch`: critic step towards r + gamma (1 - terminated)
@@ -191,13 +196,14 @@ class ComcactLearner:
         self._step(critic_loss, self._critic_params, self.critic_opt)
 
         self.actor.train()
-        actor_loss = self._actor_loss_fn(s, {k: p.detach() for k, p in self.critic.named_parameters()})
+        actor_loss, saturated = self._actor_loss_fn(s, {k: p.detach() for k, p in self.critic.named_parameters()})
         self._step(actor_loss, self._actor_params, self.actor_opt)
         self.actor.eval()
         self.critic.eval()
         self.updates += 1
         out = {"critic_loss": float(critic_loss.detach()) / self._heads, "actor_loss": float(actor_loss.detach()),
-               "q_mean": float(q.detach().mean()), "target_mean": float(y.mean())}
+               "q_mean": float(q.detach().mean()), "target_mean": float(y.mean()),
+               "actor_saturation": float(saturated)}
         if self.config.learner_compile != "off":    # into the run's train/ scalars: what compiling cost
             out["compile_s"] = sum(r["compile_s"] for r in self.compile_report().values())
         return out

@@ -168,6 +168,14 @@ class ComcactConfig:
         deviation="on = the QT step only where it is closer to the DDPG target than the critic already is; with "
         "fresh labels (restore_batch, label_critic target) at DDPG's level on Walker2d-v4, HalfCheetah-v4 and "
         "InvertedDoublePendulum-v4, below it on Hopper-v4, ahead on none (docs/comcact.md)")
+    actor_preact_l2: float = param(
+        0.0, "weight of a penalty on the actor's output before tanh: the actor minimises -mean Q(s, mu(s)) + "
+        "actor_preact_l2 x mean over batch and action dimensions of x^2, x = the output layer's value; for both "
+        "variants", thesis="0 (appendix B's actor follows the critic's gradient alone)", minimum=0.0,
+        deviation="> 0 keeps the actor out of tanh's flat ends: measured in finished runs, the actor's x sits at "
+        "|x| ~ 20-80 (saturated, gradient ~0) in 90-100 % of its outputs, and seeds stuck on one falling "
+        "policy for a whole run hold 100 % (docs/comcact.md); 1e-3 is the weight SAC's first implementation "
+        "put on its policy's pre-tanh mean")
     critic_action_input: str = param(
         "second_hidden", "where the action enters the critic: second_hidden = concatenated to the "
         "(batch-normalised) first hidden layer's output, the input of the second hidden layer "
