@@ -19,13 +19,12 @@ snapshot), then prints per run:
 """
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
-import yaml
+
+from bench_args import last_checkpoint, offline_parser, rows_per_run
 
 SATURATED = 2.65            # |x| past which tanh(x) is within 1 % of +-1
 
@@ -45,17 +44,11 @@ def replay_states(ckpt: Path, replay: dict) -> np.ndarray:
 
 def saturation(run: Path, max_states: int, seed: int) -> dict:
     import torch
-    from comper_agent.core.checkpoint import load_checkpoint
     from comper_agent.core.comcact import ComcactLearner
     from comper_agent.core.config import ComcactConfig
-    from comper_agent.run_io import resolve_checkpoint
     from comper_msgs_py.params import config_from_dict
 
-    cfg = yaml.safe_load((run / "config.yaml").read_text())
-    if cfg["algorithm"] not in ("ddpg", "comcact"):
-        raise ValueError(f"{run}: algorithm {cfg['algorithm']} has no actor")
-    ckpt = resolve_checkpoint(run)
-    state = load_checkpoint(ckpt)
+    cfg, ckpt, state = last_checkpoint(run, ("ddpg", "comcact"), "has no actor")
     env = cfg["env"]
     learner = ComcactLearner(config_from_dict(ComcactConfig, cfg["learner"]),
                              int(np.prod(env["observation_shape"])), env["action_low"], env["action_high"])
@@ -75,26 +68,14 @@ def saturation(run: Path, max_states: int, seed: int) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("runs", nargs="+", type=Path, help="comcact_node run folders (ddpg or comcact)")
+    ap = offline_parser(__doc__, "comcact_node run folders (ddpg or comcact)")
     ap.add_argument("--states", type=int, default=20000, help="states drawn from the replay (default %(default)s)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the draw")
-    ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = ap.parse_args(argv)
-    rows = []
-    for run in args.runs:
-        try:
-            rows.append(saturation(run, args.states, args.seed))
-        except (OSError, ValueError, KeyError) as exc:
-            print(f"{run}: skipped: {exc}", file=sys.stderr)
-            continue
-        r = rows[-1]
-        print(f"{r['run']} ({r['algorithm']}, step {r['step']}, {r['states']} states): saturation "
-              f"{r['saturation']:.3f}, all_saturated {r['all_saturated']:.3f}, mean_abs_x {r['mean_abs_x']:.1f}, "
-              f"action_spread {r['action_spread']:.3f}", flush=True)
-    if args.json is not None:
-        args.json.write_text(json.dumps(rows, indent=1) + "\n")
-    return 0 if rows else 1
+    return rows_per_run(
+        args.runs, lambda run: saturation(run, args.states, args.seed),
+        lambda r: (f"{r['run']} ({r['algorithm']}, step {r['step']}, {r['states']} states): saturation "
+                   f"{r['saturation']:.3f}, all_saturated {r['all_saturated']:.3f}, mean_abs_x {r['mean_abs_x']:.1f}, "
+                   f"action_spread {r['action_spread']:.3f}"), args.json)
 
 
 if __name__ == "__main__":

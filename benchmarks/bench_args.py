@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import time
+from pathlib import Path
 
 
 def add_blas_threads(ap: argparse.ArgumentParser) -> None:
@@ -69,3 +70,44 @@ def raise_on_sigterm() -> None:
     def _interrupt(signum, frame):
         raise KeyboardInterrupt(f"signal {signum}")
     signal.signal(signal.SIGTERM, _interrupt)
+
+
+def rows_per_run(runs: list, measure, line, json_path=None) -> int:
+    """The offline run tools' loop: measure(run) -> a row per run folder, printed with line(row); a run that
+    cannot be read (OSError, ValueError, KeyError) is named on stderr and skipped. Writes the rows as JSON to
+    json_path if given. Exit status 0 if any row was measured."""
+    import json
+    import sys
+    rows = []
+    for run in runs:
+        try:
+            rows.append(measure(run))
+        except (OSError, ValueError, KeyError) as exc:
+            print(f"{run}: skipped: {exc}", file=sys.stderr)
+            continue
+        print(line(rows[-1]), flush=True)
+    if json_path is not None:
+        json_path.write_text(json.dumps(rows, indent=1) + "\n")
+    return 0 if rows else 1
+
+
+def last_checkpoint(run, algorithms: tuple, why: str):
+    """(config.yaml's dict, the last checkpoint's path, its state) of a finished run folder, for the offline run
+    tools; a run of another algorithm is refused with ValueError ("<run>: algorithm X <why>")."""
+    import yaml
+    from comper_agent.core.checkpoint import load_checkpoint
+    from comper_agent.run_io import resolve_checkpoint
+    cfg = yaml.safe_load((Path(run) / "config.yaml").read_text())
+    if cfg["algorithm"] not in algorithms:
+        raise ValueError(f"{run}: algorithm {cfg['algorithm']} {why}")
+    ckpt = resolve_checkpoint(run)
+    return cfg, ckpt, load_checkpoint(ckpt)
+
+
+def offline_parser(doc: str, runs_help: str) -> argparse.ArgumentParser:
+    """The offline run tools' command line: run folders, --seed of their draws, --json for the rows."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path, help=runs_help)
+    ap.add_argument("--seed", type=int, default=0, help="seed of the draws")
+    ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    return ap

@@ -16,31 +16,24 @@ Restoring a 100,000-frame Atari memory rebuilds its index (~5 ms per identity, a
 """
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
-import yaml
+
+from bench_args import last_checkpoint, offline_parser, rows_per_run
 
 
 def final_state(run: Path, batches: int, seed: int) -> dict:
     import torch
-    from comper_agent.core.checkpoint import load_checkpoint
     from comper_agent.core.comper import ComperLearner
     from comper_agent.core.config import ComperConfig
     from comper_agent.core.qt import QTModel
     from comper_agent.qt_diagnostics import sampled_entry_stats
-    from comper_agent.run_io import resolve_checkpoint
     from comper_memory.core import CompactMemory, MemoryConfig, transition_keys
     from comper_msgs_py.params import config_from_dict
 
-    cfg = yaml.safe_load((run / "config.yaml").read_text())
-    if cfg["algorithm"] not in ("comper", "comper_m"):
-        raise ValueError(f"{run}: algorithm {cfg['algorithm']} has no QT target")
-    ckpt = resolve_checkpoint(run)
-    state = load_checkpoint(ckpt)
+    cfg, ckpt, state = last_checkpoint(run, ("comper", "comper_m"), "has no QT target")
     replay = state.get("replay") or {}
     if replay.get("kind") != "memory":
         raise ValueError(f"{run}: its last checkpoint holds no memory snapshot (checkpoint_replay)")
@@ -72,27 +65,16 @@ def final_state(run: Path, batches: int, seed: int) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("runs", nargs="+", type=Path, help="comper_node run folders (comper or comper_m)")
+    ap = offline_parser(__doc__, "comper_node run folders (comper or comper_m)")
     ap.add_argument("--batches", type=int, default=50, help="batches drawn per run (default %(default)s)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the draws")
-    ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = ap.parse_args(argv)
-    rows = []
-    for run in args.runs:
-        try:
-            rows.append(final_state(run, args.batches, args.seed))
-        except (OSError, ValueError, KeyError) as exc:
-            print(f"{run}: skipped: {exc}", file=sys.stderr)
-            continue
-        r = rows[-1]
-        print(f"{r['run']} (step {r['step']}, {r['frames']} frames, {r['batches']} batches from {r['source'].upper()}): "
-              + ", ".join(f"{k} {r[k]:.4g}" for k in ("qt_target_rmse", "td_rmse", "qt_bias", "label_bias",
-                                                     "q_gap_mean", "greedy_top_share", "label_age_mean",
-                                                     "set_size_mean", "multi_member_fraction")), flush=True)
-    if args.json is not None:
-        args.json.write_text(json.dumps(rows, indent=1) + "\n")
-    return 0 if rows else 1
+    return rows_per_run(
+        args.runs, lambda run: final_state(run, args.batches, args.seed),
+        lambda r: (f"{r['run']} (step {r['step']}, {r['frames']} frames, {r['batches']} batches from "
+                   f"{r['source'].upper()}): "
+                   + ", ".join(f"{k} {r[k]:.4g}" for k in ("qt_target_rmse", "td_rmse", "qt_bias", "label_bias",
+                                                          "q_gap_mean", "greedy_top_share", "label_age_mean",
+                                                          "set_size_mean", "multi_member_fraction"))), args.json)
 
 
 if __name__ == "__main__":
