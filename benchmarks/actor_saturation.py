@@ -15,7 +15,13 @@ snapshot), then prints per run:
   action_spread   mean over action dimensions of the actions' standard deviation across states
                   (0: the same action in every state)
 
+With --actor-steps N it then takes N actor steps alone (the learner's own actor step and Adam state, the
+critic held as it is, batches of the run's batch size drawn from those states) with actor_preact_l2 set to
+--preact-l2 (default: the run's own), and prints the same figures after them, with the critic's mean value of
+the actor's actions before and after (q_before, q_after): whether the actor's gradient can still move it.
+
     python benchmarks/actor_saturation.py runs/ddpg-Hopper-v4-s0 runs/comcact-Hopper-v4-s0 --json sat.json
+    python benchmarks/actor_saturation.py runs/comcact-Hopper-v4-s1 --actor-steps 500 --preact-l2 0.001
 """
 from __future__ import annotations
 
@@ -42,7 +48,20 @@ def replay_states(ckpt: Path, replay: dict) -> np.ndarray:
         return np.asarray(z["states"], dtype=np.float32)
 
 
-def saturation(run: Path, max_states: int, seed: int) -> dict:
+def figures(learner, states) -> dict:
+    """The saturation figures of learner's actor on these states, and the critic's mean value of its actions."""
+    import torch
+    with torch.no_grad():
+        s = torch.as_tensor(states.reshape(len(states), -1))
+        x = learner.actor.pre_activation(s)
+        sat = x.abs() > SATURATED
+        q = learner.critic(s, learner.actor.squash(x))
+    return {"saturation": float(sat.float().mean()), "all_saturated": float(sat.all(dim=1).float().mean()),
+            "mean_abs_x": float(x.abs().mean()), "action_spread": float(torch.tanh(x).std(dim=0).mean()),
+            "q": float(q.mean())}
+
+
+def saturation(run: Path, max_states: int, seed: int, actor_steps: int = 0, preact_l2: float | None = None) -> dict:
     import torch
     from comper_agent.core.comcact import ComcactLearner
     from comper_agent.core.config import ComcactConfig
@@ -50,32 +69,50 @@ def saturation(run: Path, max_states: int, seed: int) -> dict:
 
     cfg, ckpt, state = last_checkpoint(run, ("ddpg", "comcact"), "has no actor")
     env = cfg["env"]
-    learner = ComcactLearner(config_from_dict(ComcactConfig, cfg["learner"]),
+    learner_cfg = dict(cfg["learner"], **({} if preact_l2 is None else {"actor_preact_l2": preact_l2}))
+    learner = ComcactLearner(config_from_dict(ComcactConfig, learner_cfg),
                              int(np.prod(env["observation_shape"])), env["action_low"], env["action_high"])
     learner.load_state_dict(state["learner"])
     states = replay_states(ckpt, state.get("replay") or {})
+    rng = np.random.default_rng(seed)
     if len(states) > max_states:
-        states = states[np.random.default_rng(seed).choice(len(states), max_states, replace=False)]
+        states = states[rng.choice(len(states), max_states, replace=False)]
     torch.set_num_threads(1)
-    with torch.no_grad():
-        x = learner.actor.pre_activation(torch.as_tensor(states.reshape(len(states), -1)))
-        sat = x.abs() > SATURATED
-        actions = torch.tanh(x)
-    return {"run": run.name, "algorithm": cfg["algorithm"], "step": int(state["counters"]["step"]),
-            "states": len(states), "saturation": float(sat.float().mean()),
-            "all_saturated": float(sat.all(dim=1).float().mean()), "mean_abs_x": float(x.abs().mean()),
-            "action_spread": float(actions.std(dim=0).mean())}
+    before = figures(learner, states)
+    row = {"run": run.name, "algorithm": cfg["algorithm"], "step": int(state["counters"]["step"]),
+           "states": len(states), **{k: v for k, v in before.items() if k != "q"}}
+    if actor_steps > 0:
+        for _ in range(actor_steps):
+            learner.actor_step(states[rng.integers(0, len(states), learner.config.batch_size)])
+        after = figures(learner, states)
+        row.update({"actor_steps": actor_steps, "preact_l2": learner.config.actor_preact_l2,
+                    "q_before": before["q"], "q_after": after["q"],
+                    **{f"after_{k}": v for k, v in after.items() if k != "q"}})
+    return row
+
+
+def line(r: dict) -> str:
+    text = (f"{r['run']} ({r['algorithm']}, step {r['step']}, {r['states']} states): saturation {r['saturation']:.3f}, "
+            f"all_saturated {r['all_saturated']:.3f}, mean_abs_x {r['mean_abs_x']:.1f}, "
+            f"action_spread {r['action_spread']:.3f}")
+    if "actor_steps" in r:
+        text += (f"; after {r['actor_steps']} actor steps with actor_preact_l2 {r['preact_l2']:g}: saturation "
+                 f"{r['after_saturation']:.3f}, all_saturated {r['after_all_saturated']:.3f}, mean_abs_x "
+                 f"{r['after_mean_abs_x']:.1f}, action_spread {r['after_action_spread']:.3f}, critic's Q of the "
+                 f"actions {r['q_before']:.2f} -> {r['q_after']:.2f}")
+    return text
 
 
 def main(argv=None) -> int:
     ap = offline_parser(__doc__, "comcact_node run folders (ddpg or comcact)")
     ap.add_argument("--states", type=int, default=20000, help="states drawn from the replay (default %(default)s)")
+    ap.add_argument("--actor-steps", type=int, default=0,
+                    help="then take this many actor steps alone and measure again (default %(default)s: none)")
+    ap.add_argument("--preact-l2", type=float, default=None,
+                    help="actor_preact_l2 for those steps (default: the run's own)")
     args = ap.parse_args(argv)
-    return rows_per_run(
-        args.runs, lambda run: saturation(run, args.states, args.seed),
-        lambda r: (f"{r['run']} ({r['algorithm']}, step {r['step']}, {r['states']} states): saturation "
-                   f"{r['saturation']:.3f}, all_saturated {r['all_saturated']:.3f}, mean_abs_x {r['mean_abs_x']:.1f}, "
-                   f"action_spread {r['action_spread']:.3f}"), args.json)
+    return rows_per_run(args.runs, lambda run: saturation(run, args.states, args.seed, args.actor_steps,
+                                                          args.preact_l2), line, args.json)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ written, Ctrl-C saves a final checkpoint); external bring-up with sim_node, memo
 qt_trainer_node started by ros2 run (with profile fresh_labels_gate: its values reach node and learner,
 and with restore_batch the re-stored batches join their sets in the memory node); the ddpg variant with a checkpoint round trip and resume (the replay buffer's contents saved and restored)."""
 import json
+import math
 import os
 import signal
 import sys
@@ -154,10 +155,13 @@ def test_ddpg_variant_checkpoint_and_resume_continue_the_step_count(launch, tmp_
         from actor_saturation import saturation
     finally:
         sys.path.remove(str(ROOT / "benchmarks"))
-    row = saturation(tmp_path / "dd", max_states=1000, seed=0)
+    row = saturation(tmp_path / "dd", max_states=1000, seed=0, actor_steps=20, preact_l2=1e-3)
     assert row["algorithm"] == "ddpg" and row["step"] == 300 and row["states"] == 300
     assert 0.0 <= row["all_saturated"] <= row["saturation"] <= 1.0 and row["mean_abs_x"] > 0.0
     assert row["action_spread"] > 0.0          # 300 updates in, the actor still answers states differently
+    assert row["actor_steps"] == 20 and row["preact_l2"] == 1e-3
+    assert row["after_mean_abs_x"] < row["mean_abs_x"]      # the penalty pulls x back towards 0
+    assert all(map(math.isfinite, (row["q_before"], row["q_after"])))
 
     # a checkpoint whose replay file has gone: the resume stops at start with one readable error, writing nothing
     (ck.parent / s2["replay"]["file"]).unlink()

@@ -301,3 +301,15 @@ def test_actor_preact_l2_brings_a_saturated_actor_back_where_the_critic_reaches_
     assert result[0.0][0] == 1.0 and result[1e-3][0] == 1.0
     assert result[0.0][2] == 0.0                 # no gradient reaches a saturated actor
     assert result[1e-3][1] < 0.5 * result[0.0][1]
+
+
+def test_actor_step_moves_the_actor_alone():
+    lrn = learner()
+    b = batch(seed=7)
+    critic_before = [p.detach().clone() for p in lrn.critic.parameters()]
+    actor_before = [p.detach().clone() for p in lrn.actor.parameters()]
+    out = lrn.actor_step(b.states)
+    assert set(out) == {"actor_loss", "actor_saturation"} and lrn.updates == 0
+    assert all(torch.equal(p, q) for p, q in zip(lrn.critic.parameters(), critic_before))
+    assert any(not torch.equal(p, q) for p, q in zip(lrn.actor.parameters(), actor_before))
+    assert not lrn.actor.training and not lrn.critic.training

@@ -195,18 +195,27 @@ class ComcactLearner:
         critic_loss, q = self._critic_loss_fn(s, a, y)
         self._step(critic_loss, self._critic_params, self.critic_opt)
 
-        self.actor.train()
-        actor_loss, saturated = self._actor_loss_fn(s, {k: p.detach() for k, p in self.critic.named_parameters()})
-        self._step(actor_loss, self._actor_params, self.actor_opt)
-        self.actor.eval()
+        actor = self._actor_update(s)      # the critic still in train mode, as for its own step (batch norm)
         self.critic.eval()
         self.updates += 1
-        out = {"critic_loss": float(critic_loss.detach()) / self._heads, "actor_loss": float(actor_loss.detach()),
-               "q_mean": float(q.detach().mean()), "target_mean": float(y.mean()),
-               "actor_saturation": float(saturated)}
+        out = {"critic_loss": float(critic_loss.detach()) / self._heads, **actor,
+               "q_mean": float(q.detach().mean()), "target_mean": float(y.mean())}
         if self.config.learner_compile != "off":    # into the run's train/ scalars: what compiling cost
             out["compile_s"] = sum(r["compile_s"] for r in self.compile_report().values())
         return out
+
+    def _actor_update(self, s: torch.Tensor) -> dict:
+        """One actor step on states s against the critic as it is (its weights and its batch-norm mode)."""
+        self.actor.train()
+        loss, saturated = self._actor_loss_fn(s, {k: p.detach() for k, p in self.critic.named_parameters()})
+        self._step(loss, self._actor_params, self.actor_opt)
+        self.actor.eval()
+        return {"actor_loss": float(loss.detach()), "actor_saturation": float(saturated)}
+
+    def actor_step(self, states: np.ndarray) -> dict:
+        """One actor step alone (update()'s second half) on these states: what the actor's gradient can still
+        do with the critic it has (benchmarks/actor_saturation.py). Counts no update."""
+        return self._actor_update(self._t(states).reshape(len(states), -1))
 
     def qt_critic_step(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
         """COMCACT's extra critic step (Algorithm 8 lines 29-34): minimise
