@@ -174,8 +174,9 @@ class ComcactConfig:
         "variants", thesis="0 (appendix B's actor follows the critic's gradient alone)", minimum=0.0,
         deviation="> 0 keeps the actor out of tanh's flat ends: measured in finished runs, the actor's x sits at "
         "|x| ~ 20-80 (saturated, gradient ~0) in 90-100 % of its outputs, and seeds stuck on one falling "
-        "policy for a whole run hold 100 % (docs/comcact.md); 1e-3 is the weight SAC's first implementation "
-        "put on its policy's pre-tanh mean")
+        "policy for a whole run hold 100 % (docs/comcact.md); 1e-3 (the weight SAC's first implementation put on "
+        "its policy's pre-tanh mean) on Hopper-v4, 3 seeds: no seed stuck, fresh_labels_gate 700 against DDPG's "
+        "800 (453 without it), DDPG 1,173; other tasks not measured")
     critic_action_input: str = param(
         "second_hidden", "where the action enters the critic: second_hidden = concatenated to the "
         "(batch-normalised) first hidden layer's output, the input of the second hidden layer "
