@@ -30,31 +30,23 @@ from pathlib import Path
 
 import numpy as np
 
-from bench_args import last_checkpoint, offline_parser, rows_per_run
+from bench_args import checkpoint_replay, last_checkpoint, offline_parser, rows_per_run
 
-SATURATED = 2.65            # |x| past which tanh(x) is within 1 % of +-1
-
-
-def replay_states(ckpt: Path, replay: dict) -> np.ndarray:
+def replay_states(ckpt: Path, state: dict) -> np.ndarray:
     """The states the run's replay held at the checkpoint (DDPG's buffer file, or the memory snapshot)."""
-    if replay.get("kind") == "local":
-        path = ckpt.parent / replay["file"]
-    elif replay.get("kind") == "memory":
-        snap = Path(replay["path"])
-        path = (snap if snap.exists() else ckpt.parent / replay["request"]) / "state.npz"
-    else:
-        raise ValueError(f"{ckpt}: the checkpoint holds no replay (run with checkpoint_replay)")
-    with np.load(path) as z:
+    kind, path = checkpoint_replay(ckpt, state)
+    with np.load(path if kind == "local" else path / "state.npz") as z:
         return np.asarray(z["states"], dtype=np.float32)
 
 
 def figures(learner, states) -> dict:
     """The saturation figures of learner's actor on these states, and the critic's mean value of its actions."""
     import torch
+    from comper_agent.core.networks import SATURATED_PREACT
     with torch.no_grad():
         s = torch.as_tensor(states.reshape(len(states), -1))
         x = learner.actor.pre_activation(s)
-        sat = x.abs() > SATURATED
+        sat = x.abs() > SATURATED_PREACT
         q = learner.critic(s, learner.actor.squash(x))
     return {"saturation": float(sat.float().mean()), "all_saturated": float(sat.all(dim=1).float().mean()),
             "mean_abs_x": float(x.abs().mean()), "action_spread": float(torch.tanh(x).std(dim=0).mean()),
@@ -73,7 +65,7 @@ def saturation(run: Path, max_states: int, seed: int, actor_steps: int = 0, prea
     learner = ComcactLearner(config_from_dict(ComcactConfig, learner_cfg),
                              int(np.prod(env["observation_shape"])), env["action_low"], env["action_high"])
     learner.load_state_dict(state["learner"])
-    states = replay_states(ckpt, state.get("replay") or {})
+    states = replay_states(ckpt, state)
     rng = np.random.default_rng(seed)
     if len(states) > max_states:
         states = states[rng.choice(len(states), max_states, replace=False)]

@@ -104,6 +104,19 @@ def last_checkpoint(run, algorithms: tuple, why: str):
     return cfg, ckpt, load_checkpoint(ckpt)
 
 
+def checkpoint_replay(ckpt: Path, state: dict) -> tuple[str, Path]:
+    """(kind, path) of the replay contents saved with a checkpoint (run_io.RunOutputs.REPLAY_SUFFIXES): kind
+    local -> the replay buffer's .npz, kind memory -> the memory snapshot folder (the recorded path, or the one
+    beside the checkpoint when the run folder has moved since). ValueError when the checkpoint holds none."""
+    replay = state.get("replay") or {}
+    if replay.get("kind") == "local":
+        return "local", ckpt.parent / replay["file"]
+    if replay.get("kind") == "memory":
+        snap = Path(replay["path"])
+        return "memory", snap if snap.exists() else ckpt.parent / replay["request"]
+    raise ValueError(f"{ckpt}: the checkpoint holds no replay contents (run with checkpoint_replay)")
+
+
 def offline_parser(doc: str, runs_help: str) -> argparse.ArgumentParser:
     """The offline run tools' command line: run folders, --seed of their draws, --json for the rows."""
     ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench_args import last_checkpoint, offline_parser, rows_per_run
+from bench_args import checkpoint_replay, last_checkpoint, offline_parser, rows_per_run
 
 
 def final_state(run: Path, batches: int, seed: int) -> dict:
@@ -34,12 +34,9 @@ def final_state(run: Path, batches: int, seed: int) -> dict:
     from comper_msgs_py.params import config_from_dict
 
     cfg, ckpt, state = last_checkpoint(run, ("comper", "comper_m"), "has no QT target")
-    replay = state.get("replay") or {}
-    if replay.get("kind") != "memory":
+    kind, snap = checkpoint_replay(ckpt, state)
+    if kind != "memory":
         raise ValueError(f"{run}: its last checkpoint holds no memory snapshot (checkpoint_replay)")
-    snap = Path(replay["path"])
-    if not snap.exists():                      # a run folder moved since: the snapshot beside the checkpoint
-        snap = ckpt.parent / replay["request"]
     torch.set_num_threads(1)
     learner = ComperLearner(config_from_dict(ComperConfig, cfg["learner"]),
                             obs_shape=tuple(cfg["env"]["observation_shape"]), n_actions=cfg["env"]["num_actions"])

@@ -27,7 +27,7 @@ from torch.func import functional_call
 from comper_msgs_py.arrays import Transitions
 
 from .config import ComcactConfig
-from .networks import Actor, Critic, TwinCritic, compile_or_eager, soft_update
+from .networks import SATURATED_PREACT, Actor, Critic, TwinCritic, compile_or_eager, soft_update
 from .noise import OUNoise
 
 __all__ = ["ComcactLearner"]
@@ -175,14 +175,14 @@ class ComcactLearner:
 
     def _actor_loss(self, s: torch.Tensor, critic_params: dict) -> tuple[torch.Tensor, torch.Tensor]:
         """(-mean Q(s, mu(s)) + actor_preact_l2 x mean x^2, share of saturated outputs), x = the actor's output
-        before tanh, saturated = |x| > 2.65 (within 1 % of a bound). The critic's weights come as detached
+        before tanh, saturated = |x| > SATURATED_PREACT (within 1 % of a bound). The critic's weights come as detached
         tensors: the backward pass reaches the actor's weights only (the critic is still differentiated with
         respect to its input), without toggling requires_grad on the critic, which a compiled graph would guard on."""
         pre = self.actor.pre_activation(s)
         loss = -functional_call(self.critic, critic_params, (s, self.actor.squash(pre))).mean()
         if self.config.actor_preact_l2 > 0.0:
             loss = loss + self.config.actor_preact_l2 * torch.mean(pre ** 2)
-        return loss, torch.mean((pre.detach().abs() > 2.65).float())
+        return loss, torch.mean((pre.detach().abs() > SATURATED_PREACT).float())
 
     def update(self, batch: Transitions) -> dict:
         """One DDPG update on `batch`: critic step towards r + gamma (1 - terminated)

@@ -94,6 +94,11 @@ def compile_or_eager(fn, mode: str, name: str):
     return fn if mode == "off" else CompiledOrEager(fn, mode, name)
 
 
+#: |x| of the actor's output before tanh past which the action is within 1 % of its bound (tanh(2.65) = 0.99),
+#: where tanh's slope, and so the gradient the actor gets from the critic, is below 0.02
+SATURATED_PREACT = 2.65
+
+
 class Actor(nn.Module):
     """BN(obs) -> [Linear h -> ReLU -> BN] per hidden layer -> Linear (U(+-final_init)) -> tanh,
     scaled to [low, high] per action dimension."""
@@ -117,8 +122,7 @@ class Actor(nn.Module):
         nn.init.uniform_(self.out.bias, -final_init, final_init)
 
     def pre_activation(self, obs: torch.Tensor) -> torch.Tensor:
-        """The output layer's values before tanh (|x| > 2.65 puts an action dimension within 1 % of its bound,
-        where tanh's slope, and so the actor's gradient, is below 0.02)."""
+        """The output layer's values before tanh (saturated past SATURATED_PREACT)."""
         return self.out(self.body(obs))
 
     def squash(self, pre: torch.Tensor) -> torch.Tensor:
