@@ -45,7 +45,7 @@ from pathlib import Path
 from comper_agent.core.protocol import protocol_summary
 from comper_agent.run_io import MetricsLog
 from learning_bench import claim_domain, parse_variants, release_domain   # one claim registry for every run
-from bench_args import raise_on_sigterm, stop_runs
+from bench_args import raise_on_sigterm, resume_status, stop_runs
 
 import numpy as np
 
@@ -58,20 +58,13 @@ def run_id(game: str, variant: str, seed: int) -> str:
 
 
 def run_status(out: Path, rid: str) -> str:
-    """'done' (summary.json with complete true), 'continue' (stopped before its budget, with a checkpoint that
-    holds its memory / replay contents), 'new' (no checkpoint). ValueError for a stopped run whose checkpoint
-    lacks them (older code, or checkpoint_replay off): going on from an empty memory would change the protocol."""
+    """'done' (summary.json with complete true), else bench_args.resume_status of its folder: 'continue' (stopped
+    before its budget, with a checkpoint that holds its memory / replay contents) or 'new' (no checkpoint);
+    ValueError for a stopped run whose checkpoint lacks them."""
     d = out / "runs" / rid
     if (d / "summary.json").exists() and json.loads((d / "summary.json").read_text()).get("complete"):
         return "done"
-    ck = d / "checkpoints" / "latest.pt"
-    if not ck.exists():
-        return "new"
-    from comper_agent.core.checkpoint import load_checkpoint
-    if "replay" not in load_checkpoint(ck):
-        raise ValueError(f"{d} stopped before its budget and its checkpoint holds no memory / replay contents; "
-                         "remove the folder to run it again from the start")
-    return "continue"
+    return resume_status(d)
 
 
 def launch(args, game: str, variant: str, seed: int, domain: int, resume: bool = False) -> subprocess.Popen:

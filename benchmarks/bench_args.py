@@ -117,6 +117,27 @@ def checkpoint_replay(ckpt: Path, state: dict) -> tuple[str, Path]:
     raise ValueError(f"{ckpt}: the checkpoint holds no replay contents (run with checkpoint_replay)")
 
 
+def resume_status(run_dir: Path, budget: int | None = None) -> str:
+    """What a second start of a split sweep does with a run folder: 'new' (no checkpoint yet: start it from
+    nothing), 'done' (its last checkpoint is at or past ``budget``, counted in frames where the run counts
+    frames, else agent steps; None: never done by this test) or 'continue' (a checkpoint before its budget
+    that holds the memory / replay contents: start it with ``resume``). ValueError for a checkpoint before its
+    budget without them (older code, or checkpoint_replay off): going on from an empty memory would change
+    what the run learns from."""
+    from comper_agent.core.checkpoint import load_checkpoint
+    ck = Path(run_dir) / "checkpoints" / "latest.pt"
+    if not ck.exists():
+        return "new"
+    state = load_checkpoint(ck)
+    counters = state.get("counters") or {}
+    if budget is not None and counters.get("frames", counters.get("step", 0)) >= budget:
+        return "done"
+    if "replay" not in state:
+        raise ValueError(f"{run_dir} stopped before its budget and its checkpoint holds no memory / replay "
+                         "contents; remove the folder to run it again from the start")
+    return "continue"
+
+
 def offline_parser(doc: str, runs_help: str) -> argparse.ArgumentParser:
     """The offline run tools' command line: run folders, --seed of their draws, --json for the rows."""
     ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])

@@ -17,7 +17,12 @@ seeds with a bootstrap 95% confidence interval of the seed means, and how many r
 
 Writes <out>/<tag>/{results.md, results.json, curves_<task>.png, runs/<run_id>/..., logs/<run_id>.log}.
 Ctrl-C or SIGTERM stops the runs in progress as their own Ctrl-C would (final checkpoint and summary, at
-most 2 minutes) and reports what finished; a run started again begins afresh.
+most 2 minutes) and reports what finished. Started again with the same --out, --tag and grid, the bench skips
+the runs whose last checkpoint is at their budget and continues each one stopped before it from its last
+checkpoint (``resume``, with the memory's or replay buffer's contents: checkpoint_replay), so a sweep longer
+than a session splits over several; a run killed outright goes on from its last periodic checkpoint (every
+5,000 steps), and the evaluations its first session logged past that point are replaced by the second's.
+Stable-Baselines3 reference runs cannot resume: one stopped early starts again. --force starts every run afresh.
 """
 from __future__ import annotations
 
@@ -31,7 +36,7 @@ import sys
 import time
 from pathlib import Path
 
-from bench_args import raise_on_sigterm, stop_nodes, stop_runs
+from bench_args import raise_on_sigterm, resume_status, stop_nodes, stop_runs
 from comper_agent.run_io import MetricsLog
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -71,6 +76,9 @@ def parse_args(argv=None):
     ap.add_argument("--only", nargs="+", default=[], metavar="RUN_ID",
                     help="run only these runs of the grid (e.g. the ones a broken machine ended early); the report "
                          "still covers every run found in <out>/<tag>")
+    ap.add_argument("--force", action="store_true",
+                    help="start every run of the grid afresh (its folder is replaced), even one that is done or can "
+                         "continue from its checkpoint")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the tables/plots from <out>/<tag>")
     ap.add_argument("--include", nargs="+", default=[], metavar="RESULTS_JSON",
                     help="results.json files of earlier sweeps (e.g. docs/results/learning/*.json, kept in git): "
@@ -104,7 +112,18 @@ def run_id(alg, task, seed):
     return f"{alg}-{task.replace('/', '_')}-s{seed}"
 
 
-def launch(args, base: Path, alg, task, seed, domain):
+def run_status(args, base: Path, alg, task, seed) -> str:
+    """'done', 'continue' or 'new' for one run of the grid (bench_args.resume_status; a Stable-Baselines3 run is
+    done when its final 'timers' record covers the budget, else new: it cannot resume)."""
+    d = base / "runs" / run_id(alg, task, seed)
+    if alg == "sb3_ddpg":
+        timers = MetricsLog.read(d / "metrics.jsonl", "timers", missing_ok=True)
+        return "done" if timers and timers[-1].get("steps", 0) >= args.total_steps else "new"
+    return resume_status(d, args.total_steps)
+
+
+def launch(args, base: Path, alg, task, seed, domain, resume: bool = False):
+    """Start one run of the grid; ``resume``: continue it from its folder's last checkpoint."""
     rid = run_id(alg, task, seed)
     if alg == "sb3_ddpg":
         cmd = [sys.executable, str(ROOT / "benchmarks" / "sb3_reference.py"), "--env-id", task, "--seed", str(seed),
@@ -124,22 +143,56 @@ def launch(args, base: Path, alg, task, seed, domain):
     cmd += extra
     for k, v in params:
         cmd += ["-p", f"{k}:={v}"]
-    return _spawn(base, rid, cmd, domain, alg, task, seed)
+    if resume:                 # the same parameters as its first session; the checkpoint says where it stopped
+        cmd += ["-p", f"resume:={base / 'runs' / rid}"]
+    return _spawn(base, rid, cmd, domain, alg, task, seed, resume)
 
 
-def _spawn(base: Path, rid: str, cmd: list, domain: int, alg, task, seed) -> dict:
+def _spawn(base: Path, rid: str, cmd: list, domain: int, alg, task, seed, resume: bool = False) -> dict:
     env = os.environ.copy()
     env["ROS_DOMAIN_ID"] = str(domain)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     env.setdefault("OMP_NUM_THREADS", "1")
     (base / "logs").mkdir(parents=True, exist_ok=True)
-    log = open(base / "logs" / f"{rid}.log", "wb")
-    shutil.rmtree(base / "runs" / rid, ignore_errors=True)
+    log = open(base / "logs" / f"{rid}.log", "ab" if resume else "wb")
+    if not resume:
+        shutil.rmtree(base / "runs" / rid, ignore_errors=True)
     p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
     return {"rid": rid, "proc": p, "log": log, "t0": time.monotonic(), "alg": alg, "task": task, "seed": seed}
 
 
 DOMAIN_CLAIMS = Path(os.environ.get("TMPDIR", "/tmp")) / "comper-ros-domains"
+
+
+def resumed_evals(evals: list[dict]) -> list[dict]:
+    """A run's evaluation records in step order, as its last session saw them: a session resumed from a checkpoint
+    older than evaluations the killed session had logged evaluates those steps again, and its records replace
+    them (with the weights the run went on from)."""
+    out: list[dict] = []
+    for e in evals:
+        while out and out[-1]["step"] >= e["step"]:
+            out.pop()
+        out.append(e)
+    return out
+
+
+def run_timers(records: list[dict]) -> dict | None:
+    """A run's time split over its sessions (one 'timers' record each; a session killed outright leaves none, and
+    its time is not counted): seconds, steps and phases summed, steps/s over the sum; other fields the last's."""
+    if len(records) <= 1:
+        return records[0] if records else None
+    out = dict(records[-1], sessions=len(records))
+    out["elapsed_s"] = sum(r["elapsed_s"] for r in records)
+    out["steps"] = sum(r["steps"] for r in records)
+    out["steps_per_s"] = out["steps"] / max(out["elapsed_s"], 1e-9)
+    phases: dict = {}
+    for r in records:
+        for k, v in (r.get("phases") or {}).items():
+            ph = phases.setdefault(k, {"seconds": 0.0, "calls": 0})
+            ph["seconds"] += v["seconds"]
+            ph["calls"] += v["calls"]
+    out["phases"] = phases
+    return out
 
 
 def on_grid(evals, every: int) -> list[tuple[int, float]]:
@@ -192,13 +245,18 @@ def run_all(args, base: Path) -> None:
         if unknown:
             raise SystemExit(f"--only: {', '.join(sorted(unknown))} not in this grid")
         jobs = [j for j in jobs if run_id(*j) in args.only]
+    status = {j: "new" if args.force else run_status(args, base, *j) for j in jobs}
+    skipped = [run_id(*j) for j in jobs if status[j] == "done"]
+    if skipped:
+        print(f"[bench] {len(skipped)} run(s) already at their budget, not run again: {', '.join(skipped)}", flush=True)
+    jobs = [j for j in jobs if status[j] != "done"]
     print(f"[bench] {len(jobs)} runs ({len(args.tasks)} tasks x {len(args.algorithms)} algorithms x "
           f"{args.seeds} seeds), {args.total_steps} steps each, {args.parallel} at a time; outputs in {base}",
           flush=True)
     running: list[dict] = []
     t_start = time.monotonic()
     try:
-        _run_jobs(args, base, jobs, running)
+        _run_jobs(args, base, jobs, running, status)
     except KeyboardInterrupt:
         stop_runs([r["proc"] for r in running], 120.0)
         for r in running:
@@ -208,16 +266,17 @@ def run_all(args, base: Path) -> None:
     print(f"[bench] all runs finished in {time.monotonic() - t_start:.0f} s", flush=True)
 
 
-def _run_jobs(args, base: Path, jobs: list, running: list) -> None:
+def _run_jobs(args, base: Path, jobs: list, running: list, status: dict) -> None:
     done, last_status = 0, 0.0
     while jobs or running:
         while jobs and len(running) < args.parallel:
             a, t, s = jobs.pop(0)
             dom = claim_domain()
-            r = launch(args, base, a, t, s, dom)
+            resume = status[(a, t, s)] == "continue"
+            r = launch(args, base, a, t, s, dom, resume=resume)
             r["domain"] = dom
             running.append(r)
-            print(f"[bench] start {r['rid']} (ROS_DOMAIN_ID {dom})", flush=True)
+            print(f"[bench] {'continue' if resume else 'start'} {r['rid']} (ROS_DOMAIN_ID {dom})", flush=True)
         time.sleep(2.0)
         for r in list(running):
             rc = r["proc"].poll()
@@ -279,11 +338,11 @@ def report(args, base: Path) -> dict:
             for s in range(args.seeds):
                 rid = run_id(a, t, s)
                 m = base / "runs" / rid / "metrics.jsonl"
-                evals = MetricsLog.read(m, "eval", missing_ok=True)
-                timers = MetricsLog.read(m, "timers", missing_ok=True)
+                evals = resumed_evals(MetricsLog.read(m, "eval", missing_ok=True))
+                timers = run_timers(MetricsLog.read(m, "timers", missing_ok=True))
                 results["runs"][rid] = {"task": t, "algorithm": a, "seed": s,
                                         "evals": [(e["step"], e["mean_return"], e["std_return"]) for e in evals],
-                                        "timers": timers[-1] if timers else None}
+                                        "timers": timers}
     tasks, algorithms = list(args.tasks), list(args.algorithms)
     for inc in args.include:
         prev = json.loads(Path(inc).read_text())

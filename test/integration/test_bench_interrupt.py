@@ -1,7 +1,9 @@
 """A benchmark stopped with SIGTERM (or Ctrl-C) stops the runs it started: they run in sessions of their
 own (a terminal's Ctrl-C misses them), so without this they went on without the benchmark, still holding
 a ROS domain the next benchmark could take. Here learning_bench starts one real comper_node run
-(CartPole-v1, dqn), gets SIGTERM once the run is under way, and the run ends as on its own Ctrl-C."""
+(CartPole-v1, dqn), gets SIGTERM once the run is under way, and the run ends as on its own Ctrl-C. Started
+again, the bench continues that run from its checkpoint (replay contents included) to its budget, and a third
+start finds nothing left to run."""
 import json
 import os
 import signal
@@ -51,3 +53,15 @@ def test_sigterm_to_the_bench_stops_its_runs_with_their_final_checkpoint(tmp_pat
     claims = Path(os.environ.get("TMPDIR", "/tmp")) / "comper-ros-domains"    # learning_bench.DOMAIN_CLAIMS
     held = [f.name for f in claims.glob("*") if f.read_text().strip() == str(bench.pid)]
     assert not held, f"ROS domain(s) {held} still claimed by the stopped benchmark"
+
+    # the second start (budget: 300 steps past where it stopped) continues the run; the third has nothing to do
+    stopped_at, step = summary["frames"], summary["steps"]          # its budget counts frames
+    again = cmd[:cmd.index("--total-steps") + 1] + [str(stopped_at + 300)] + cmd[cmd.index("--total-steps") + 2:]
+    second = subprocess.run(again, capture_output=True, text=True, timeout=300)
+    assert second.returncode == 0 and "continue dqn-CartPole-v1-s0" in second.stdout, second.stdout + second.stderr
+    node_log = (out / "t" / "logs" / "dqn-CartPole-v1-s0.log").read_text()
+    assert f"resuming at step {step}" in node_log and "replay buffer restored" in node_log, node_log[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["complete"] is True and summary["frames"] >= stopped_at + 300      # its last episode ends
+    third = subprocess.run(again, capture_output=True, text=True, timeout=120)
+    assert "already at their budget, not run again: dqn-CartPole-v1-s0" in third.stdout, third.stdout

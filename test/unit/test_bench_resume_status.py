@@ -1,0 +1,73 @@
+"""benchmarks/atari_bench.py and learning_bench.py: which runs a second start of a split sweep does again. A
+complete run is done; one stopped before its budget continues from its checkpoint when that holds the memory /
+replay contents, and is refused (not silently continued from an empty memory) when it does not."""
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from comper_agent.core.checkpoint import save_checkpoint
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _bench(name="atari_bench"):
+    sys.path.insert(0, str(ROOT / "benchmarks"))          # atari_bench imports learning_bench
+    try:
+        spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    return mod
+
+
+def _run(out: Path, rid: str, complete=None, replay=None, counters=None) -> None:
+    d = out / "runs" / rid
+    d.mkdir(parents=True)
+    if complete is not None:
+        (d / "summary.json").write_text(json.dumps({"complete": complete}))
+    if replay is not False:
+        save_checkpoint(d / "checkpoints" / "latest.pt",
+                        {"counters": counters or {"step": 10}, **({"replay": replay} if replay else {})})
+
+
+def test_split_runs_continue_only_from_a_checkpoint_with_their_memory(tmp_path):
+    b = _bench()
+    _run(tmp_path, "done", complete=True)
+    _run(tmp_path, "stopped", complete=False, replay={"kind": "memory", "request": "step_000000010.memory"})
+    _run(tmp_path, "killed", replay={"kind": "local", "file": "step_000000010.replay.npz"})
+    _run(tmp_path, "early", replay=False)
+    _run(tmp_path, "old", complete=False)
+    assert b.run_status(tmp_path, "done") == "done"
+    assert b.run_status(tmp_path, "stopped") == "continue" and b.run_status(tmp_path, "killed") == "continue"
+    assert b.run_status(tmp_path, "early") == "new" and b.run_status(tmp_path, "absent") == "new"
+    with pytest.raises(ValueError, match="holds no memory / replay contents"):
+        b.run_status(tmp_path, "old")
+
+
+def test_learning_bench_skips_runs_at_their_budget_and_continues_stopped_ones(tmp_path):
+    b = _bench("learning_bench")
+    args = b.parse_args(["--tasks", "Hopper-v4", "CartPole-v1", "--algorithms", "ddpg", "dqn", "sb3_ddpg",
+                         "--total-steps", "50000", "--out", str(tmp_path), "--tag", "t"])
+    base = tmp_path / "t"
+    mem = {"kind": "memory", "request": "step_000030000.memory"}
+    _run(base, "ddpg-Hopper-v4-s0", replay=mem, counters={"step": 50000})
+    _run(base, "ddpg-Hopper-v4-s1", replay=mem, counters={"step": 30000})
+    _run(base, "ddpg-Hopper-v4-s2", counters={"step": 30000})
+    _run(base, "dqn-CartPole-v1-s0", replay={"kind": "local", "file": "x.npz"}, counters={"step": 60000, "frames": 40000})
+    assert b.run_status(args, base, "ddpg", "Hopper-v4", 0) == "done"
+    assert b.run_status(args, base, "ddpg", "Hopper-v4", 1) == "continue"
+    assert b.run_status(args, base, "dqn", "CartPole-v1", 0) == "continue"      # the budget counts its frames
+    assert b.run_status(args, base, "ddpg", "CartPole-v1", 0) == "new"
+    with pytest.raises(ValueError, match="holds no memory / replay contents"):
+        b.run_status(args, base, "ddpg", "Hopper-v4", 2)
+    sb3 = base / "runs" / "sb3_ddpg-Hopper-v4-s0"
+    sb3.mkdir(parents=True)
+    (sb3 / "metrics.jsonl").write_text(json.dumps({"kind": "eval", "step": 5000}) + "\n")
+    assert b.run_status(args, base, "sb3_ddpg", "Hopper-v4", 0) == "new"         # stopped early: starts again
+    with open(sb3 / "metrics.jsonl", "a") as f:
+        f.write(json.dumps({"kind": "timers", "steps": 50000, "elapsed_s": 900.0}) + "\n")
+    assert b.run_status(args, base, "sb3_ddpg", "Hopper-v4", 0) == "done"
