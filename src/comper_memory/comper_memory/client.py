@@ -130,10 +130,11 @@ class MemoryClient(ServiceClient):
     rate_limit_timeout: how long store and sample keep retrying a call that the node's rate limiter
     holds back (``rate_limited`` in the answer) before they raise :class:`RateLimitTimeout`
     (None = ``timeout``); retries back off from 1 ms to 50 ms.
-    resend_s: a store or sample whose answer has not come after this many seconds is sent again (0 = never;
-    then one lost answer costs the whole ``timeout``). Safe: every store carries a fresh request id, and the
+    resend_s: a store, sample or stats request whose answer has not come after this many seconds is sent again
+    (0 = never; then one lost answer costs the whole ``timeout``; a first call right after the node comes up
+    can lose its answer while discovery completes). Safe: every store carries a fresh request id, and the
     node answers a re-sent one with the first one's answer without applying it twice (``resend_window``);
-    a re-sent sample is just another draw. ``resent`` counts them.
+    a re-sent sample is just another draw, a re-sent stats request another read. ``resent`` counts them.
     """
 
     REFUSED = MemoryServiceError
@@ -250,7 +251,7 @@ class MemoryClient(ServiceClient):
 
     def stats(self, *, timeout: float | None = None) -> dict:
         """The node's MemoryStats as a dict (keys as in comper_msgs/msg/MemoryStats)."""
-        return stats_to_dict(self._call(self._stats, GetStats.Request(), timeout).stats)
+        return stats_to_dict(self._call(self._stats, GetStats.Request(), timeout, resend_s=self.resend_s).stats)
 
     def snapshot(self, path: str = "", *, timeout: float | None = None) -> tuple[str, int]:
         """Save a verified snapshot: '' = the node's storage_dir (checkpoint + WAL rotation), a
