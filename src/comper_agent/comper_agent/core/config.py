@@ -176,7 +176,8 @@ class ComcactConfig:
         "|x| ~ 20-80 (saturated, gradient ~0) in 90-100 % of its outputs, and seeds stuck on one falling "
         "policy for a whole run hold 100 % (docs/comcact.md); 1e-3 (the weight SAC's first implementation put on "
         "its policy's pre-tanh mean) on Hopper-v4, 3 seeds: no seed stuck, fresh_labels_gate 700 against DDPG's "
-        "800 (453 without it), DDPG 1,173; other tasks not measured")
+        "800 (453 without it), DDPG 1,173; on Walker2d-v4 it helps DDPG and not fresh_labels_gate, and on "
+        "HalfCheetah-v4 it costs DDPG most of its return (259 against 2,058), so no profile sets it")
     critic_action_input: str = param(
         "second_hidden", "where the action enters the critic: second_hidden = concatenated to the "
         "(batch-normalised) first hidden layer's output, the input of the second hidden layer "
