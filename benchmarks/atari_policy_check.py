@@ -10,6 +10,14 @@ greedy action is the same in every state has learned an action preference, not a
 policy. The last two columns compare with the network the run started from (the learner built from
 its config.yaml, same seed): whether training moved the greedy action at all.
 
+Value scale (in the JSON rows): ``v_mean`` / ``v_std``, the mean and spread of max_a Q over the visited
+states of the episodes that ended within ``--states`` steps, against ``mc_return_mean``, the discounted
+(run's gamma) return, with the run's reward clip, that the check's own behaviour policy then collected
+from those states, and ``v_mc_corr``, the correlation of the two over those states. The behaviour policy
+is not the greedy one, so the return is a scale, not the value Q should hold; but a Q several times any
+return an episode collects, or one that does not fall as the game nears its end (correlation near 0),
+holds an offset rather than values.
+
     python benchmarks/atari_policy_check.py benchmarks/results/atari/s5/runs/*
 """
 from __future__ import annotations
@@ -23,7 +31,7 @@ import torch
 import yaml
 
 from comper_agent.comper_node import ComperNode
-from comper_agent.core.comper import ComperLearner
+from comper_agent.core.comper import ComperLearner, clip_rewards
 from comper_agent.value_checks import load_policy
 from comper_agent.run_io import resolve_checkpoint
 from comper_msgs_py.params import config_from_dict
@@ -50,7 +58,10 @@ def check(run: Path, states: int, explore: float, seed: int) -> dict:
     env = make_env(SimConfig(env_id=env_id, frame_stack=q.in_channels, frame_pooling=pooling))
     names = env.env.unwrapped.get_action_meanings()     # ALE's own action names, in action order
     rng = np.random.default_rng(seed)
+    gamma = float(config["learner"].get("gamma", 0.99))
+    reward_clip = config["learner"].get("reward_clip", "none")
     obs, greedy, gaps, greedy0 = env.reset(seed), [], [], []
+    values, returns, episode = [], [], []       # episode: (max Q, clipped reward) of the one in progress
     try:
         for _ in range(states):
             with torch.no_grad():
@@ -59,8 +70,13 @@ def check(run: Path, states: int, explore: float, seed: int) -> dict:
             greedy.append(int(qv.argmax()))
             gaps.append(float(qv.max() - qv.min()))
             a = int(rng.integers(n)) if rng.random() < explore else greedy[-1]
-            obs, _, terminated, truncated, _ = env.step(a)
+            obs, r, terminated, truncated, _ = env.step(a)
+            episode.append((float(qv.max()), float(clip_rewards(np.asarray([r], np.float32), reward_clip)[0])))
             if terminated or truncated:
+                if terminated:           # a truncated episode's return is cut short: not counted
+                    values.extend(v for v, _ in episode)
+                    returns.extend(discounted_returns([rw for _, rw in episode], gamma))
+                episode = []
                 obs = env.reset(None)
     finally:
         env.close()
@@ -70,7 +86,27 @@ def check(run: Path, states: int, explore: float, seed: int) -> dict:
             "top_action": names[top], "top_share": float(counts[top] / len(greedy)),
             "q_gap_mean": float(np.mean(gaps)),
             "initial_top_action": names[top0], "initial_top_share": float(counts0[top0] / len(greedy0)),
-            "same_as_initial": float(np.mean(np.asarray(greedy) == np.asarray(greedy0)))}
+            "same_as_initial": float(np.mean(np.asarray(greedy) == np.asarray(greedy0))),
+            **value_scale(values, returns)}
+
+
+def discounted_returns(rewards: list[float], gamma: float) -> list[float]:
+    """G_t = sum_k gamma^k r_{t+k} to the episode's end, for every step t."""
+    out, g = [], 0.0
+    for r in reversed(rewards):
+        g = r + gamma * g
+        out.append(g)
+    return out[::-1]
+
+
+def value_scale(values: list[float], returns: list[float]) -> dict:
+    """max_a Q against the discounted return collected from the same states (module text)."""
+    v, g = np.asarray(values, float), np.asarray(returns, float)
+    if v.size < 2:
+        return {"value_states": int(v.size)}
+    corr = float(np.corrcoef(v, g)[0, 1]) if v.std() > 0 and g.std() > 0 else float("nan")
+    return {"value_states": int(v.size), "v_mean": float(v.mean()), "v_std": float(v.std()),
+            "mc_return_mean": float(g.mean()), "mc_return_max": float(g.max()), "v_mc_corr": corr}
 
 
 def main() -> None:

@@ -70,7 +70,8 @@ def main(argv=None) -> int:
         lambda r: (f"{r['run']} (step {r['step']}, {r['frames']} frames, {r['batches']} batches from "
                    f"{r['source'].upper()}): "
                    + ", ".join(f"{k} {r[k]:.4g}" for k in ("qt_target_rmse", "td_rmse", "qt_bias", "label_bias",
-                                                          "q_gap_mean", "greedy_top_share", "label_age_mean",
+                                                          "v_next_mean", "v_next_std", "qt_v_corr", "q_gap_mean",
+                                                          "greedy_top_share", "label_age_mean",
                                                           "set_size_mean", "multi_member_fraction"))), args.json)
 
 

@@ -48,8 +48,8 @@ def second_half_medians(recs: list[dict]) -> dict:
     last = recs[-1]["step"]
     half = [r for r in recs if r["step"] >= last / 2]
     keys = ("qt_target_rmse", "critic_td_rmse", "td_rmse", "qt_bias", "label_age_mean", "set_size_mean",
-            "multi_member_fraction", "greedy_top_share", "q_gap_mean")
-    return {k: float(np.median([r[k] for r in half])) for k in keys if k in half[-1]}
+            "multi_member_fraction", "greedy_top_share", "q_gap_mean", "v_next_std", "qt_v_corr")
+    return {k: float(np.nanmedian([r.get(k, np.nan) for r in half])) for k in keys if k in half[-1]}
 
 
 def td_error(rec: dict) -> float:

@@ -290,9 +290,18 @@ def test_qt_diagnostics_measure_qt_against_the_networks_own_bootstrap():
     assert exact["q_gap_mean"] == pytest.approx(float((q.max(1) - q.min(1)).mean()), rel=1e-5)
     greedy = q.argmax(1)
     assert exact["greedy_top_share"] == pytest.approx(np.bincount(greedy).max() / n)
+    live = v[~term]
+    assert exact["v_next_mean"] == pytest.approx(float(live.mean()), rel=1e-5)
+    assert exact["v_next_std"] == pytest.approx(float(live.std()), rel=1e-4)
+    assert exact["qt_v_corr"] == pytest.approx(1.0, abs=1e-5)
     off = lrn.qt_diagnostics(b, v + 1.0)
     assert off["qt_target_rmse"] == pytest.approx(0.99 * np.sqrt(48 / 64), rel=1e-5)
     assert off["qt_bias"] == pytest.approx(1.0, rel=1e-5)
+    assert off["qt_v_corr"] == pytest.approx(1.0, abs=1e-5)       # a shift keeps the correlation
+    noise = rng.normal(size=n).astype(np.float32)
+    ref = np.corrcoef(noise[~term], live)[0, 1]
+    assert lrn.qt_diagnostics(b, noise)["qt_v_corr"] == pytest.approx(ref, abs=1e-5)
+    assert np.isnan(lrn.qt_diagnostics(b, np.full(n, 2.0, np.float32))["qt_v_corr"])   # QT flat: undefined
     b.value_labels = np.zeros(0, np.float32)
     assert np.isnan(lrn.qt_diagnostics(b, v)["label_bias"])
     before = copy.deepcopy(lrn.q.state_dict())

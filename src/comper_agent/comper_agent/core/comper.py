@@ -232,7 +232,11 @@ class ComperLearner:
         qt_target_rmse: RMS of y_QT - y_V; td_rmse: RMS of Q(s, a) - y_QT (the error this update's loss
         sees); qt_bias: mean of QT(tau) - V(s') over non-terminal rows (positive: QT above the network);
         label_bias: the same for the value labels the sampled entries carry (RTM: QT's prediction from
-        the entry's last reduction; TM: the set's newest label; NaN without labels); q_gap_mean: mean over the batch's states of max_a Q(s, a) - min_a Q(s, a);
+        the entry's last reduction; TM: the set's newest label; NaN without labels); v_next_mean,
+        v_next_std: mean and spread of V(s') over non-terminal rows (the state-dependent part that an
+        RMS is to be read against); qt_v_corr: Pearson correlation of QT(tau) with V(s') over those rows
+        (1: QT follows the network's state values; NaN with fewer than 2 rows or no spread);
+        q_gap_mean: mean over the batch's states of max_a Q(s, a) - min_a Q(s, a);
         greedy_top_share: the share of the batch's states whose greedy action is the batch's most
         common one (1 = one action in every sampled state)."""
         s = self._t(batch.states)
@@ -248,10 +252,16 @@ class ComperLearner:
             return float((values - v_next)[live].mean()) if bool(live.any()) else 0.0
 
         labelled = batch.value_labels.size == len(batch)
+        v_live, qt_live = v_next[live], qt[live]
+        spread = v_live.numel() > 1 and float(v_live.std()) > 0 and float(qt_live.std()) > 0
+        corr = float(torch.corrcoef(torch.stack([qt_live, v_live]))[0, 1]) if spread else float("nan")
         return {"qt_target_rmse": float(torch.sqrt(torch.mean((y_qt - y_v) ** 2))),
                 "td_rmse": float(torch.sqrt(torch.mean((q_sa - y_qt) ** 2))),
                 "qt_bias": bias(qt),
                 "label_bias": bias(self._t(batch.value_labels, torch.float32)) if labelled else float("nan"),
+                "v_next_mean": float(v_live.mean()) if v_live.numel() else float("nan"),
+                "v_next_std": float(v_live.std(unbiased=False)) if v_live.numel() else float("nan"),
+                "qt_v_corr": corr,
                 "q_gap_mean": float((q.max(dim=1).values - q.min(dim=1).values).mean()),
                 "greedy_top_share": float(torch.bincount(greedy).max()) / max(len(batch), 1)}
 
