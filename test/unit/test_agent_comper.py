@@ -307,3 +307,42 @@ def test_qt_diagnostics_measure_qt_against_the_networks_own_bootstrap():
     before = copy.deepcopy(lrn.q.state_dict())
     lrn.qt_diagnostics(b, v)
     assert all(torch.equal(before[k], p) for k, p in lrn.q.state_dict().items())
+
+
+def test_target_labels_are_the_target_networks_bootstrap_and_leave_the_qt_target_alone():
+    """label_network target (comper): labels = Q_target(s', argmax_a Q(s', a)) with double_dqn, max_a Q_target(s', a)
+    without, 0 when terminated, computed here by hand after the online network has moved away from its copy;
+    the TD target still bootstraps from QT; the per-step label (next_value) agrees with the batch one."""
+    for double in (True, False):
+        lrn = ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp", "label_network": "target",
+                                                            "double_dqn": double}), obs_shape=(3,), n_actions=4)
+        assert lrn.uses_target_net and lrn.target_labels and not lrn.bootstraps_from_target
+        rng = np.random.default_rng(5)
+        n = 16
+        term = np.zeros(n, bool)
+        term[:3] = True
+        b = Transitions(states=rng.normal(size=(n, 3)).astype(np.float32), actions=rng.integers(0, 4, n),
+                        rewards=rng.normal(size=n).astype(np.float32),
+                        next_states=rng.normal(size=(n, 3)).astype(np.float32), terminated=term,
+                        truncated=np.zeros(n, bool))
+        qt = np.full(n, 0.5, np.float32)
+        for _ in range(20):
+            lrn.update(b, qt)                  # the online network moves; the target copy stays
+        with torch.no_grad():
+            ns = torch.as_tensor(b.next_states)
+            q_on, q_tg = lrn.q(ns).numpy(), lrn.q_target(ns).numpy()
+        assert not np.allclose(q_on, q_tg)
+        ref = q_tg[np.arange(n), q_on.argmax(1)] if double else q_tg.max(1)
+        np.testing.assert_allclose(lrn.value_labels(b), ref * ~term, rtol=1e-5, atol=1e-6)
+        assert lrn.next_value(b.next_states[5], q_on[5]) == pytest.approx(float(ref[5]), rel=1e-5)
+        y = lrn.targets(b, qt).numpy()
+        np.testing.assert_allclose(y, np.clip(b.rewards, -1, 1) + 0.99 * ~term * 0.5, rtol=1e-5, atol=1e-6)
+        lrn.sync_target()
+        with torch.no_grad():
+            q_on = lrn.q(ns).numpy()
+        np.testing.assert_allclose(lrn.value_labels(b), q_on.max(1) * ~term, rtol=1e-5, atol=1e-6)
+    online = ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp"}), obs_shape=(3,), n_actions=4)
+    assert online.q_target is None and online.next_value(b.next_states[0], np.array([1.0, 3.0, 2.0, 0.0])) == 3.0
+    with pytest.raises(ValueError, match="qt_label:=next_value"):
+        ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp", "label_network": "target",
+                                                      "qt_label": "q_sa"}), obs_shape=(3,), n_actions=4)

@@ -27,7 +27,8 @@ Algorithm 7 loop that they share, which reads top to bottom in ``_agent_step`` /
 One agent step (all variants): a = epsilon-greedy(Q(s)) with epsilon 1.0 -> 0.01 over 90,000
 frames -> ``<sim>/step``. The value label of transition t (``qt_label`` next_value) is
 max_a Q(s_{t+1}, a), read off the Q-values computed to act at t + 1 (0 when terminated; one extra
-forward pass only for a truncated episode end); ``q_sa`` (thesis-literal) stores Q(s_t, a_t) from
+forward pass only for a truncated episode end; ``label_network`` target: the target network's
+bootstrap of s_{t+1}, one target forward pass per step); ``q_sa`` (thesis-literal) stores Q(s_t, a_t) from
 the same forward pass. Every ``train_frequency`` (4) steps from ``learning_starts`` (100):
 
 1. one ``<memory>/store`` call with the new labelled transitions **and** the previous update's
@@ -39,7 +40,8 @@ the same forward pass. Every ``train_frequency`` (4) steps from ``learning_start
 4. Huber loss on Q(s, a_taken) against r + gamma (1 - terminated) QT(tau), QT(tau) predicted
    by the local copy of the latest QTModel (comper, comper_m), or against the target network's
    max_a Q_target(s', a) (comper_f, dqn; copied every ``target_update_every`` 1,000 steps);
-5. labels of the updated batch for its re-store: max_a Q(s', a) (0 when terminated).
+5. labels of the updated batch for its re-store: max_a Q(s', a), or the target network's bootstrap
+   with ``label_network`` target (0 when terminated).
 
 comper_f reduces through ``<memory>/reduce`` (newest label as prediction; no QT is trained, the
 variant does not use it). dqn uses an in-process frame-deduplicating replay (each frame stored
@@ -263,8 +265,8 @@ class ComperNode(AgentNode):
         if self.uses_memory and self.pending:
             last = self.pending.newest_unlabelled()
             if last is not None:    # stopped mid-episode: label the last one too
-                last.label = float(self.learner.act(last.next_state, epsilon=0.0)[1].max()) \
-                    * (0.0 if last.terminated else 1.0)
+                q_last = self.learner.act(last.next_state, epsilon=0.0)[1]
+                last.label = self.learner.next_value(last.next_state, q_last) * (0.0 if last.terminated else 1.0)
             self._flush(with_restore=False)
         if self.windows is not None:
             self.windows.reset()          # the windows still open at the stop are dropped (and counted)
@@ -333,7 +335,8 @@ class ComperNode(AgentNode):
             a, q = self.learner.act(obs, frames=self.frames)
         waiting = self.pending.newest_unlabelled()
         if waiting is not None:     # next_value label of the previous transition
-            waiting.label = float(q.max())
+            with self.ptimers("learner"):
+                waiting.label = self.learner.next_value(obs, q)
         r, nxt = self.env.step(a)
         term, trunc = bool(r.terminated), bool(r.truncated)
         self.ep_frames = int(r.frames)
@@ -357,7 +360,7 @@ class ComperNode(AgentNode):
                 label = float(q[a])
             elif over:      # truncated end: nobody acts on s', compute max_a Q(s', a) now
                 with self.ptimers("learner"):
-                    label = float(self.learner.act(nxt, epsilon=0.0)[1].max())
+                    label = self.learner.next_value(nxt, self.learner.act(nxt, epsilon=0.0)[1])
             else:
                 label = None
             self.pending.append(Row(obs, a, r.reward, nxt, term, trunc, self.step, label))

@@ -25,7 +25,9 @@ rmsprop_dm, divides min_sq_grad by batch_size^2, which gives the identical step.
                        (the replay's window of m <= n steps, :class:`~.replay.NStepRewards`)
 
 clip(r) is ``reward_clip`` (default [-1, 1]); the memory and every report keep the raw reward.
-The target network (comper_f, dqn) is copied by :meth:`ComperLearner.sync_target`, which the node
+Value labels (what QT learns for comper, comper_m): max_a Q(s', a) of the network being trained, or with
+``label_network`` target the target network's bootstrap above (double_dqn applies), x (1 - terminated).
+The target network (comper_f, dqn; comper and comper_m with ``label_network`` target) is copied by :meth:`ComperLearner.sync_target`, which the node
 calls every ``target_update_every`` agent steps. Epsilon counts frames (skipped ones included).
 """
 from __future__ import annotations
@@ -137,7 +139,13 @@ class ComperLearner:
             else:
                 self.q = NatureCNN(c.frame_stack, self.n_actions).to(self.device)
         self.q.eval()
-        self.uses_target_net = c.variant in ("comper_f", "dqn")
+        if c.label_network == "target" and c.qt_label != "next_value":
+            raise ValueError("label_network:=target computes next_value labels; it needs qt_label:=next_value")
+        # comper_f and dqn bootstrap their TD targets from the target network; comper and comper_m with
+        # label_network target keep one for their value labels only (targets come from QT)
+        self.bootstraps_from_target = c.variant in ("comper_f", "dqn")
+        self.target_labels = c.label_network == "target" and not self.bootstraps_from_target
+        self.uses_target_net = self.bootstraps_from_target or self.target_labels
         self.q_target = copy.deepcopy(self.q) if self.uses_target_net else None
         if self.q_target is not None:
             for p in self.q_target.parameters():
@@ -173,17 +181,38 @@ class ComperLearner:
         return int(np.argmax(q)), q
 
     # ------------------------------------------------------------------ labels and targets
+    def _target_bootstrap(self, next_states: torch.Tensor, q_online: torch.Tensor | None = None) -> torch.Tensor:
+        """max_a Q_target(s', a), or with double_dqn Q_target(s', argmax_a Q(s', a)) (`q_online`: the
+        online Q-values at s' when the caller has them already)."""
+        q_next = self.q_target(next_states)
+        if not self.config.double_dqn:
+            return q_next.max(dim=1).values
+        if q_online is None:
+            q_online = self.q(next_states)
+        return q_next.gather(1, q_online.argmax(dim=1, keepdim=True)).squeeze(1)
+
     @torch.no_grad()
     def value_labels(self, batch: Transitions) -> np.ndarray:
-        """next_value: max_a Q(s', a) * (1 - terminated); q_sa: Q(s, a). float32 [N]."""
+        """next_value: the bootstrap of s' (``label_network``: max_a Q(s', a), or the target network's)
+        x (1 - terminated); q_sa: Q(s, a). float32 [N]."""
         if len(batch) == 0:
             return np.zeros(0, np.float32)
         if self.config.qt_label == "q_sa":
             q = self.q(self._t(batch.states))
             a = self._t(batch.actions, torch.int64).reshape(-1, 1)
             return q.gather(1, a).squeeze(1).cpu().numpy().astype(np.float32)
-        v = self.q(self._t(batch.next_states)).max(dim=1).values
+        ns = self._t(batch.next_states)
+        v = self._target_bootstrap(ns) if self.target_labels else self.q(ns).max(dim=1).values
         return (v * (1.0 - self._t(batch.terminated, torch.float32))).cpu().numpy().astype(np.float32)
+
+    @torch.no_grad()
+    def next_value(self, next_obs: np.ndarray, q_online: np.ndarray) -> float:
+        """The next_value label of one transition from s' and the online Q-values at s' (those computed to
+        act there): max of them, or with ``label_network`` target the target network's bootstrap. The caller
+        applies the terminal mask."""
+        if not self.target_labels:
+            return float(np.max(q_online))
+        return float(self._target_bootstrap(self._t(next_obs)[None], self._t(q_online, torch.float32)[None])[0])
 
     @torch.no_grad()
     def targets(self, batch: Transitions, qt_targets: np.ndarray | None = None,
@@ -209,14 +238,8 @@ class ComperLearner:
             r = (rw * in_window * c.gamma ** j.to(rw.dtype)).sum(dim=1)
             discount = c.gamma ** lengths.to(rw.dtype)
         not_done = 1.0 - self._t(batch.terminated, torch.float32)
-        if self.uses_target_net:
-            ns = self._t(batch.next_states)
-            q_next = self.q_target(ns)
-            if c.double_dqn:
-                a_star = self.q(ns).argmax(dim=1, keepdim=True)
-                boot = q_next.gather(1, a_star).squeeze(1)
-            else:
-                boot = q_next.max(dim=1).values
+        if self.bootstraps_from_target:
+            boot = self._target_bootstrap(self._t(batch.next_states))
         else:
             if qt_targets is None:
                 raise ValueError(f"variant {c.variant} needs qt_targets")

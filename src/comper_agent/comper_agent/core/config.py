@@ -249,6 +249,16 @@ class ComperConfig:
                           "max_a Q(s', a) (0 when terminated); q_sa = Q(s, a) (thesis-literal)",
                           thesis="q_sa (Algorithm 7 line 4: Q_t from epsilon-greedy)",
                           choices=("next_value", "q_sa"), deviation=_NEXT_VALUE_DEVIATION)
+    label_network: str = param(
+        "online", "network that computes the next_value labels (comper, comper_m): online = the Q-network being "
+        "trained, max_a Q(s', a); target = a copy of it refreshed every target_update_every agent steps, "
+        "Q_target(s', argmax_a Q(s', a)) with double_dqn, max_a Q_target(s', a) without (0 when terminated in "
+        "both). Only with qt_label next_value",
+        thesis="online (Algorithm 7 has no target network: the labels are the Q-network's own)",
+        choices=("online", "target"),
+        deviation="target: a QT fitted on these labels estimates the bootstrap that comper_f and dqn take from "
+        "their target network, instead of the online network's max, which each label's own max inflates and the "
+        "next label inherits (method.md 6.9)")
     n_actions: int = param(0, "outputs of the Q-network; 0 = the environment's action count (an ALE game "
                            "with the full action set: 18)", thesis="18 (appendix A.4, the ALE full action set)",
                            minimum=0)
@@ -283,8 +293,9 @@ class ComperConfig:
         thesis="clipped to [-1, 1] (chapter 5 follows Machado et al. 2018, whose DQN clips rewards as Mnih "
         "et al. 2015)", choices=("clip", "sign", "none"))
     double_dqn: bool = param(
-        False, "variants with a target network (comper_f, dqn): bootstrap from Q_target(s', argmax_a Q(s', a)) "
-        "(double DQN, van Hasselt et al. 2016) instead of max_a Q_target(s', a)",
+        False, "variants with a target network (comper_f, dqn; comper and comper_m labels with label_network "
+        "target): bootstrap from Q_target(s', argmax_a Q(s', a)) (double DQN, van Hasselt et al. 2016) instead "
+        "of max_a Q_target(s', a)",
         thesis="false (the DQN of Mnih et al. 2015 and Machado et al. 2018)")
     n_step: int = param(
         1, "transitions per TD target; n > 1 bootstraps from the state n steps on: sum_j<m gamma^j clip(r_j) + "
@@ -319,7 +330,7 @@ class ComperConfig:
                                       "one frame per agent step) over which epsilon decays linearly",
                                       thesis="90,000 (method.md 4)", minimum=1)
     target_update_every: int = param(1_000, "agent steps between target-network copies "
-                                     "(comper_f, dqn)", thesis="1,000 (Table 35)", minimum=1)
+                                     "(comper_f, dqn; comper and comper_m with label_network target)", thesis="1,000 (Table 35)", minimum=1)
     frame_pooling: str = param(
         "average", "how an ALE observation combines the last two frames of a skip (given to the embedded sim "
         "node's frame_pooling): average = colour averaging (Machado et al. 2018), max = per-pixel maximum "
