@@ -335,6 +335,9 @@ def test_target_labels_are_the_target_networks_bootstrap_and_leave_the_qt_target
         ref = q_tg[np.arange(n), q_on.argmax(1)] if double else q_tg.max(1)
         np.testing.assert_allclose(lrn.value_labels(b), ref * ~term, rtol=1e-5, atol=1e-6)
         assert lrn.next_value(b.next_states[5], q_on[5]) == pytest.approx(float(ref[5]), rel=1e-5)
+        diag = lrn.qt_diagnostics(b, ref * ~term)             # measured against the labels' own network
+        assert diag["qt_target_rmse"] == pytest.approx(0.0, abs=1e-6)
+        assert diag["v_next_mean"] == pytest.approx(float(ref[~term].mean()), rel=1e-5)
         y = lrn.targets(b, qt).numpy()
         np.testing.assert_allclose(y, np.clip(b.rewards, -1, 1) + 0.99 * ~term * 0.5, rtol=1e-5, atol=1e-6)
         lrn.sync_target()

@@ -248,9 +248,10 @@ class ComperLearner:
 
     @torch.no_grad()
     def qt_diagnostics(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
-        """How QT's bootstrap compares on this batch (no parameter moves) with the one Q-learning would
-        take from the network being trained, V(s') = max_a Q(s', a) (0 when terminated): the value label
-        a re-store writes now. y_QT and y_V are :meth:`targets` with either bootstrap.
+        """How QT's bootstrap compares on this batch (no parameter moves) with V(s'), the value label a
+        re-store writes now (0 when terminated): max_a Q(s', a) of the network being trained, or with
+        ``label_network`` target the target network's bootstrap. y_QT and y_V are :meth:`targets` with
+        either bootstrap.
 
         qt_target_rmse: RMS of y_QT - y_V; td_rmse: RMS of Q(s, a) - y_QT (the error this update's loss
         sees); qt_bias: mean of QT(tau) - V(s') over non-terminal rows (positive: QT above the network);
@@ -264,7 +265,8 @@ class ComperLearner:
         common one (1 = one action in every sampled state)."""
         s = self._t(batch.states)
         live = self._t(batch.terminated, torch.float32) < 0.5
-        v_next = self.q(self._t(batch.next_states)).max(dim=1).values * live
+        ns = self._t(batch.next_states)
+        v_next = (self._target_bootstrap(ns) if self.target_labels else self.q(ns).max(dim=1).values) * live
         qt = self._t(qt_targets, torch.float32).reshape(-1)
         y_qt, y_v = self.targets(batch, qt), self.targets(batch, v_next.cpu().numpy())
         q = self.q(s)
