@@ -4,6 +4,8 @@ benchmarks import it by putting this folder on sys.path.
 """
 from __future__ import annotations
 
+import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,8 +16,24 @@ from comper_agent.recording import ChunkedBagWriter, comper_typestore, make_qos
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.qos import RECORDED_QOS
 
-__all__ = ["synthetic_run", "write_run_bag", "transitions_cdr", "episode_cdr", "evaluation_cdr", "EpisodeTopics",
+__all__ = ["load_benchmark", "synthetic_run", "write_run_bag", "transitions_cdr", "episode_cdr", "evaluation_cdr", "EpisodeTopics",
            "env_run", "write_run_dir"]
+
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def load_benchmark(name: str):
+    """benchmarks/<name>.py as a module, with benchmarks/ on sys.path while it loads (the scripts import
+    bench_args and each other), so a test does not depend on another test having put it there."""
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return mod
 
 
 def synthetic_run(n_steps: int, *, obs_dim: int = 11, action_dim: int = 3, seed: int = 0,

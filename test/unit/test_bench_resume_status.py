@@ -1,27 +1,17 @@
 """benchmarks/atari_bench.py and learning_bench.py: which runs a second start of a split sweep does again. A
 complete run is done; one stopped before its budget continues from its checkpoint when that holds the memory /
 replay contents, and is refused (not silently continued from an empty memory) when it does not."""
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
 from comper_agent.core.checkpoint import save_checkpoint
-
-ROOT = Path(__file__).resolve().parents[2]
+from scaffolding import load_benchmark
 
 
 def _bench(name="atari_bench"):
-    sys.path.insert(0, str(ROOT / "benchmarks"))          # atari_bench imports learning_bench
-    try:
-        spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    return mod
+    return load_benchmark(name)
 
 
 def _run(out: Path, rid: str, complete=None, replay=None, counters=None) -> None:

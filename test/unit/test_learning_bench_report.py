@@ -2,17 +2,11 @@
 for that point (they were read as the previous point's, one evaluation late); the last-k-evaluations column
 averages each run's last k grid evaluations and leaves out a run that lacks one; a run resumed over several
 sessions is read as its last session saw it."""
-import importlib.util
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[2]
+from scaffolding import load_benchmark
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("learning_bench", ROOT / "benchmarks" / "learning_bench.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("learning_bench")
 
 
 def test_async_evaluation_steps_land_on_their_grid_point():

@@ -1,24 +1,12 @@
 """benchmarks/atari_policy_check.py: the value-scale columns (max_a Q against the discounted return collected from
 the same states) on hand-computed episodes."""
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
-
+from scaffolding import load_benchmark
 
 def _check():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        spec = importlib.util.spec_from_file_location("atari_policy_check", ROOT / "benchmarks" / "atari_policy_check.py")
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    return mod
+    return load_benchmark("atari_policy_check")
 
 
 def test_discounted_returns_run_to_the_episode_end():
