@@ -191,6 +191,13 @@ class ComperLearner:
             q_online = self.q(next_states)
         return q_next.gather(1, q_online.argmax(dim=1, keepdim=True)).squeeze(1)
 
+    def _label_bootstrap(self, next_states: torch.Tensor) -> torch.Tensor:
+        """The next_value label of s' before the terminal mask (``label_network``): max_a Q(s', a) of the
+        network being trained, or the target network's bootstrap."""
+        if self.target_labels:
+            return self._target_bootstrap(next_states)
+        return self.q(next_states).max(dim=1).values
+
     @torch.no_grad()
     def value_labels(self, batch: Transitions) -> np.ndarray:
         """next_value: the bootstrap of s' (``label_network``: max_a Q(s', a), or the target network's)
@@ -201,8 +208,7 @@ class ComperLearner:
             q = self.q(self._t(batch.states))
             a = self._t(batch.actions, torch.int64).reshape(-1, 1)
             return q.gather(1, a).squeeze(1).cpu().numpy().astype(np.float32)
-        ns = self._t(batch.next_states)
-        v = self._target_bootstrap(ns) if self.target_labels else self.q(ns).max(dim=1).values
+        v = self._label_bootstrap(self._t(batch.next_states))
         return (v * (1.0 - self._t(batch.terminated, torch.float32))).cpu().numpy().astype(np.float32)
 
     @torch.no_grad()
@@ -265,8 +271,7 @@ class ComperLearner:
         common one (1 = one action in every sampled state)."""
         s = self._t(batch.states)
         live = self._t(batch.terminated, torch.float32) < 0.5
-        ns = self._t(batch.next_states)
-        v_next = (self._target_bootstrap(ns) if self.target_labels else self.q(ns).max(dim=1).values) * live
+        v_next = self._label_bootstrap(self._t(batch.next_states)) * live
         qt = self._t(qt_targets, torch.float32).reshape(-1)
         y_qt, y_v = self.targets(batch, qt), self.targets(batch, v_next.cpu().numpy())
         q = self.q(s)
