@@ -16,8 +16,8 @@ from comper_agent.recording import ChunkedBagWriter, comper_typestore, make_qos
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.qos import RECORDED_QOS
 
-__all__ = ["load_benchmark", "synthetic_run", "write_run_bag", "transitions_cdr", "episode_cdr", "evaluation_cdr", "EpisodeTopics",
-           "env_run", "write_run_dir"]
+__all__ = ["load_benchmark", "synthetic_run", "write_run_bag", "transitions_cdr", "episode_cdr", "evaluation_cdr",
+           "EpisodeTopics", "env_run", "write_run_dir"]
 
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"

@@ -7,7 +7,6 @@ import json
 import math
 import os
 import signal
-import sys
 import time
 
 import pytest
@@ -17,7 +16,8 @@ import yaml
 from comper_agent import run_io
 from comper_agent.comcact_node import SUMMARY_QOS
 from comper_msgs.msg import EpisodeSummary, EvaluationResult
-from conftest import ROOT, spin_once
+from conftest import spin_once
+from scaffolding import load_benchmark
 
 TASK = "InvertedPendulum-v4"
 
@@ -150,12 +150,7 @@ def test_ddpg_variant_checkpoint_and_resume_continue_the_step_count(launch, tmp_
     assert _evals(tmp_path, "dd") == [0, 100, 200, 300]          # appended in the same run directory
 
     # the actor's saturation offline, on the states of the checkpoint's replay (benchmarks/actor_saturation.py)
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        from actor_saturation import saturation
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    row = saturation(tmp_path / "dd", max_states=1000, seed=0, actor_steps=20, preact_l2=1e-3)
+    row = load_benchmark("actor_saturation").saturation(tmp_path / "dd", max_states=1000, seed=0, actor_steps=20, preact_l2=1e-3)
     assert row["algorithm"] == "ddpg" and row["step"] == 300 and row["states"] == 300
     assert 0.0 <= row["all_saturated"] <= row["saturation"] <= 1.0 and row["mean_abs_x"] > 0.0
     assert row["action_spread"] > 0.0          # 300 updates in, the actor still answers states differently

@@ -11,7 +11,6 @@
 """
 import json
 import os
-import sys
 import time
 
 import pytest
@@ -23,7 +22,8 @@ from comper_agent import run_io
 from comper_agent.comper_node import SUMMARY_QOS, TRANSITIONS_QOS
 from comper_msgs.msg import EpisodeSummary, TransitionBatch
 from comper_msgs_py.convert import batch_to_transitions
-from conftest import ROOT, spin_once
+from conftest import spin_once
+from scaffolding import load_benchmark
 
 GAME = "ALE/Freeway-v5"
 
@@ -242,12 +242,7 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
         assert 0 < d["greedy_top_share"] <= 1 and 0 <= d["label_age_mean"] <= d["step"] and np.isfinite(d["label_bias"])
     assert not any(run_io.MetricsLog.read(tmp_path / alg / "metrics.jsonl", "qt_diagnostics") for alg in ("dqn", "comper_f"))
     # the same figures offline from the final checkpoint and its memory snapshot (benchmarks/comper_final_state.py)
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        from comper_final_state import final_state
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    fs = final_state(tmp_path / "comper", batches=5, seed=0)
+    fs = load_benchmark("comper_final_state").final_state(tmp_path / "comper", batches=5, seed=0)
     final_step = json.loads((tmp_path / "comper" / "summary.json").read_text())["steps"]
     assert fs["step"] == final_step and fs["source"] == "rtm" and fs["memory"]["rtm_size"] > 0
     assert 0 < fs["greedy_top_share"] <= 1 and fs["td_rmse"] >= 0 and np.isfinite(fs["qt_bias"]), fs

@@ -5,6 +5,7 @@ import pytest
 
 from scaffolding import load_benchmark
 
+
 def _check():
     return load_benchmark("atari_policy_check")
 
