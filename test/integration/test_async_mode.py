@@ -1,7 +1,8 @@
 """comcact_node mode:=async over real ROS 2 (no mocks): the learner in one process (embedded memory
 and QT trainer), two actor_node processes it starts storing into the memory, the policy on
-~/policy, the memory's rate limiter holding the update-to-data ratio; and an actor started
-separately against nodes started separately."""
+~/policy, the memory's rate limiter holding the update-to-data ratio while the learner re-stores its
+batches with fresh labels (profile fresh_labels_gate); and an actor started separately against nodes
+started separately (thesis defaults)."""
 from __future__ import annotations
 
 import os
@@ -16,6 +17,7 @@ from comper_agent.core.comcact import ComcactLearner
 from comper_agent.core.config import ComcactConfig
 from comper_agent.policy_weights import POLICY_QOS, config_of_policy, load_policy_msg
 from comper_msgs.msg import PolicyWeights
+from comper_msgs_py.arrays import Transitions
 from conftest import spin_once
 
 TASK = "InvertedPendulum-v4"
@@ -36,7 +38,8 @@ def test_async_learner_with_two_actor_processes(launch, ros_node, tmp_path):
                   "-p", "num_actors:=2", "-p", "total_steps:=600", "-p", "eval_every:=300", "-p", "eval_episodes:=1",
                   "-p", "policy_period_s:=0.5", "-p", "rate_buffer_steps:=40", "-p", f"runs_root:={tmp_path}",
                   "-p", "run_id:=as", "-p", "tensorboard:=false", "-p", "progress_period_s:=2.0",
-                  "-p", "transport_probe_calls:=0", "-r", f"comcact_node:__node:={name}", name=name)
+                  "-p", "transport_probe_calls:=0", "-p", "profile:=fresh_labels_gate",
+                  "-r", f"comcact_node:__node:={name}", name=name)
     deadline = time.monotonic() + 400
     while time.monotonic() < deadline and proc.alive():
         spin_once(ros_node, 0.2)
@@ -47,8 +50,10 @@ def test_async_learner_with_two_actor_processes(launch, ros_node, tmp_path):
     actors = run_io.MetricsLog.read(run / "metrics.jsonl", "actors")[-1]
     assert actors["exit_codes"] == [0, 0], proc.log()[-3000:]
     assert actors["env_steps"] >= 600
-    # the rate limiter: 64 samples per stored transition within 40 steps either side (+ the learning start)
+    # the rate limiter: 64 samples per stored transition within 40 steps either side (+ the learning start);
+    # the learner's re-stores (64 per update, marked relabel) are neither environment steps nor inserts
     assert abs(actors["updates"] - actors["env_steps"]) <= 40 + 64 + 10, actors
+    assert actors["relabelled"] >= 32 * actors["updates"] > 0, actors
     logs = [(run / f"actor_{i}.log").read_text() for i in range(2)]
     for i, text in enumerate(logs):
         assert f"actor {i} on {TASK}" in text and "done: 300 steps" in text, text[-2000:]
@@ -62,9 +67,13 @@ def test_async_learner_with_two_actor_processes(launch, ros_node, tmp_path):
     low, high = np.array([-3.0], np.float32), np.array([3.0], np.float32)
     from_msg, from_ckpt = ComcactLearner(cfg, 4, low, high), ComcactLearner(cfg, 4, low, high)
     load_policy_msg(from_msg, policies[-1])
-    from_ckpt.actor.load_state_dict(state["actor"])
+    for part in ("actor", "actor_target", "critic_target"):   # target labels: the actors get the target networks
+        getattr(from_ckpt, part).load_state_dict(state[part])
     obs = np.random.default_rng(0).normal(size=(16, 4)).astype(np.float32)
     np.testing.assert_allclose(from_msg.act(obs, explore=False), from_ckpt.act(obs, explore=False), atol=1e-6)
+    t = Transitions(obs, from_msg.act(obs, explore=False), np.zeros(16, np.float32), obs[::-1].copy(),
+                    np.zeros(16, bool), np.zeros(16, bool))
+    np.testing.assert_allclose(from_msg.value_labels(t), from_ckpt.value_labels(t), atol=1e-5)
 
 
 def test_actor_started_separately_stores_into_a_separate_memory_node(launch, tmp_path):

@@ -96,8 +96,6 @@ def test_help_lists_every_node_and_learner_parameter(node_cls, cfg_cls):
     ("comcact_node", ["-p", "profile:=best"], "unknown profile 'best'; one of thesis, fresh_labels, fresh_labels_gate"),
     ("comcact_node", ["-p", "algorithm:=ddpg", "-p", "profile:=fresh_labels"],
      "profile:=fresh_labels sets COMCACT's value labels and QT step, which ddpg does not have"),
-    ("comcact_node", ["-p", "mode:=async", "-p", "profile:=fresh_labels_gate"],
-     "restore_batch is a lock-step option"),
 ])
 def test_a_node_that_cannot_start_says_why_in_one_line_and_exits_1(module, args, message, tmp_path):
     p = subprocess.run([sys.executable, "-m", f"comper_agent.{module}", "--ros-args", "-p",

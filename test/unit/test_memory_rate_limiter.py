@@ -7,7 +7,7 @@ import pytest
 from comper_memory.core import (CompactMemory, MemoryConfig, MemoryInputError, RateLimited,
                                 RateLimiter)
 from comper_msgs_py.params import ConfigError
-from test_memory_core import make
+from test_memory_core import make, relabel
 
 
 def mem(tmp_path=None, **kw):
@@ -31,7 +31,7 @@ def test_limiter_arithmetic_matches_reverb_sample_to_insert_ratio():
         r.check_sample(1, size=14)
     r.check_insert(8, size=14)               # 12 + 16 = 28
     assert r.stats() == {"rate_inserts": 14, "rate_samples": 16, "samples_per_insert_held": 16 / 14,
-                         "rate_limited_stores": 1, "rate_limited_samples": 2}
+                         "rate_limited_stores": 1, "rate_limited_samples": 2, "rate_relabelled": 0}
     with pytest.raises(MemoryInputError, match="could never pass"):
         r.check_insert(9, size=14)           # 18 > the whole window of 16
     with pytest.raises(MemoryInputError, match="could never pass"):
@@ -90,3 +90,23 @@ def test_a_recovered_memory_starts_at_the_balance_point(tmp_path):
     with pytest.raises(RateLimited):
         m.sample(1, "tm")
     m.close()
+
+
+def test_a_relabel_store_is_neither_held_back_nor_counted_as_inserts():
+    """restore_batch in async mode: fresh labels for stored transitions are not environment steps."""
+    rng = np.random.default_rng(3)
+    m = mem(samples_per_insert=1.0, rate_error_buffer=64.0, min_size_to_sample=32)
+    t = make(rng, 96)
+    m.store(t)                               # 96 = offset 32 + buffer 64: the next insert waits
+    with pytest.raises(RateLimited, match="waits for samples"):
+        m.store(make(rng, 1))
+    r = m.store(relabel(t.take(slice(0, 64)), rng.standard_normal(64)), relabel=True)
+    assert r.new_identities == 0             # they join their own sets (a label history), as in lock step
+    s, st = m.rate_stats(), m.stats()
+    assert (s["rate_inserts"], s["rate_relabelled"], s["rate_limited_stores"]) == (96, 64, 1)
+    assert st["transitions_stored"] == 160 and st["identities"] == 96
+    assert m.rate.diff == 96                 # the balance is that of the 96 inserts alone
+    m.sample(64, "tm")                       # a sample releases as many inserts as before the relabel
+    m.store(make(rng, 64))
+    with pytest.raises(RateLimited, match="waits for samples"):
+        m.store(make(rng, 1))

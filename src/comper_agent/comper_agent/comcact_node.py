@@ -86,11 +86,6 @@ class ComcactNode(AgentNode):
         if not self.comcact and self.profile != "thesis":
             raise ValueError(f"profile:={self.profile} sets COMCACT's value labels and QT step, which ddpg does not "
                              "have; use profile:=thesis with algorithm:=ddpg")
-        if self.async_mode and p.restore_batch:
-            raise ValueError("restore_batch is a lock-step option (the re-stores would count as environment "
-                             "steps for the rate limiter); use mode:=lockstep"
-                             + (f" or a profile without it (profile:={self.profile} sets it)"
-                                if "restore_batch" in self.PROFILES[self.profile] else ""))
         self.policy_pub = (PolicyPublisher(f"{self.get_fully_qualified_name()}/policy", f"{self.get_name()}_policy")
                            if self.async_mode else None)
         self.fleet = None
@@ -178,17 +173,22 @@ class ComcactNode(AgentNode):
         """mode:=async: publish the policy, start the actors (embedded), then update continuously; the
         memory's rate limiter holds the update-to-data ratio, this loop only counts steps and evaluates."""
         p = self.p
-        steps_base = int(self.mem.stats()["transitions_stored"]) - self.step
+        def stored_by_actors() -> int:
+            """Transitions in the memory's count that are not this learner's re-stores (restore_batch)."""
+            with self.ptimers("memory"):
+                return int(self.mem.stats()["transitions_stored"]) - self.mem.restored
+
+        steps_base = stored_by_actors() - self.step
 
         def env_steps() -> int:
             """Environment steps so far: transitions the actors stored since this run started."""
-            with self.ptimers("memory"):
-                return int(self.mem.stats()["transitions_stored"]) - steps_base
+            return stored_by_actors() - steps_base
 
         def publish_policy(final: bool = False) -> None:
             with self.ptimers("publish"):
                 self.policy_pub.send(self.learner, env_steps=self.step, final=final)
 
+        self.mem.relabel_apart = True   # restore_batch: re-stores are not environment steps for the rate limiter
         publish_policy()
         if p.bringup == "embedded" and p.num_actors > 0:
             left = p.total_steps - self.step
@@ -212,6 +212,8 @@ class ComcactNode(AgentNode):
             if since_count >= 20 or self.update_count == before:
                 self.step = max(self.step, env_steps())
                 since_count = 0
+                if self.comcact:
+                    self.mem.store(None)      # restore_batch: the re-stores of these updates, marked relabel
             if time.monotonic() - last_policy >= p.policy_period_s:
                 publish_policy()
                 last_policy = time.monotonic()
@@ -224,6 +226,8 @@ class ComcactNode(AgentNode):
         owed = int(p.replay_ratio * max(0, self.step - self.cfg.learning_starts))
         while self.update_count < owed and not self.stop_event.is_set():
             self._train_step()
+        if self.comcact:
+            self.mem.store(None)
         publish_policy(final=True)
 
     def shutdown(self) -> None:
@@ -238,7 +242,7 @@ class ComcactNode(AgentNode):
             self.log.info(f"async: actors exited with {codes}")
             self.metrics.write("actors", exit_codes=codes, policies_published=self.policy_pub.published,
                                updates=self.update_count, env_steps=self.step,
-                               update_to_data=self.update_count / max(1, self.step))
+                               update_to_data=self.update_count / max(1, self.step), relabelled=int(self.mem.restored))
 
     def _finish(self, elapsed: float, steps: int, timers: dict) -> None:
         if self.evaluation.records:

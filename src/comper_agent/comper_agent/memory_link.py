@@ -44,6 +44,9 @@ class MemoryLink:
         self.qt = None                       # newest QTModel received on qt_model
         self.qt_cond = threading.Condition()
         self.qt_received = 0
+        # async learners (comcact_node mode:=async) send their re-stores in calls of their own, marked relabel,
+        # so the memory's rate limiter does not count them as environment steps; lock step sends one call
+        self.relabel_apart = False
         if uses_qt:
             node.create_subscription(QTModelMsg, f"/{p.qt_trainer_node.strip('/')}/qt_model",
                                      self._on_qt_model, QT_MODEL_QOS)
@@ -101,15 +104,21 @@ class MemoryLink:
     # --- store / sample / stats ------------------------------------------------------------------
     def store(self, t: Transitions | None, with_restore: bool = True) -> None:
         """One store call (timed as 'memory'): `t` (new labelled transitions, or None) and, with_restore,
-        the re-stored batches waiting (:meth:`queue_restore`); nothing when there is neither."""
-        parts = ([t] if t is not None else []) + (self.restore if with_restore else [])
-        if not parts:
+        the re-stored batches waiting (:meth:`queue_restore`); nothing when there is neither. With
+        relabel_apart the re-stores go in a second call marked relabel (not counted by a rate limiter)."""
+        new = [t] if t is not None else []
+        restore = self.restore if with_restore else []
+        if not new and not restore:
             return
         if with_restore:
-            self.restored += sum(len(x) for x in self.restore)
+            self.restored += sum(len(x) for x in restore)
             self.restore = []
+        calls = [(new, False), (restore, True)] if self.relabel_apart else [(new + restore, False)]
         with self.timers("memory"):
-            self.memory.store(parts[0] if len(parts) == 1 else Transitions.concatenate(parts))
+            for parts, relabel in calls:
+                if parts:
+                    self.memory.store(parts[0] if len(parts) == 1 else Transitions.concatenate(parts),
+                                      relabel=relabel)
 
     def queue_restore(self, batch: Transitions) -> None:
         """restore_batch: `batch` (an update's batch, labelled after that update) goes out again with

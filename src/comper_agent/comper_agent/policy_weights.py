@@ -23,15 +23,23 @@ POLICY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=Re
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 _PARTS = ("actor", "critic")
+_TARGET_PARTS = ("actor_target", "critic_target")
+
+
+def _parts_of(learner) -> tuple[str, ...]:
+    """The networks a message carries: the online actor and critic, and with label_critic target also
+    the target networks, which then give the actors' labels (the learner's label rule)."""
+    return _PARTS + (_TARGET_PARTS if getattr(learner.config, "label_critic", "online") == "target" else ())
 
 
 def policy_to_msg(learner, *, version: int, env_steps: int, final: bool = False) -> PolicyWeights:
-    """The learner's online actor and critic (ComcactLearner) as a PolicyWeights message."""
+    """The learner's online actor and critic (ComcactLearner) as a PolicyWeights message, and its
+    target networks too when it labels with them (label_critic target)."""
     msg = PolicyWeights(version=int(version), env_steps=int(env_steps), final=bool(final))
     cfg = {k: (list(v) if isinstance(v, tuple) else v) for k, v in config_to_dict(learner.config).items()}
     msg.config_json = json.dumps(cfg, sort_keys=True)
     names, tensors = [], []
-    for part in _PARTS:
+    for part in _parts_of(learner):
         for k, v in getattr(learner, part).state_dict().items():
             names.append(f"{part}.{k}")
             tensors.append(numpy_to_array(v.detach().cpu().numpy().astype(np.float32)))
@@ -47,14 +55,15 @@ def config_of_policy(msg: PolicyWeights, config_cls):
 
 def load_policy_msg(learner, msg: PolicyWeights) -> None:
     """Load the message's actor and critic into `learner` (same architecture; ValueError if not).
-    The target networks are set to the same weights (an actor uses them only for target labels)."""
-    states = {p: {} for p in _PARTS}
+    The target networks get the message's target networks when it carries them (label_critic target),
+    else the same weights as the online ones (an actor uses them only for target labels)."""
+    states = {p: {} for p in _PARTS + _TARGET_PARTS}
     for name, arr in zip(msg.tensor_names, msg.tensors):
         part, _, key = name.partition(".")
         if part not in states:
             raise ValueError(f"policy message: unknown tensor {name!r}")
         states[part][key] = np.array(array_to_numpy(arr), copy=True)
-    for part in _PARTS:
+    for part in _PARTS + tuple(p for p in _TARGET_PARTS if states[p]):
         net = getattr(learner, part)
         own = net.state_dict()
         if set(own) != set(states[part]):
@@ -62,7 +71,8 @@ def load_policy_msg(learner, msg: PolicyWeights) -> None:
                              f"({sorted(set(own) ^ set(states[part]))[:3]} ...)")
         net.load_state_dict({k: torch.as_tensor(v, dtype=own[k].dtype).reshape(own[k].shape)
                              for k, v in states[part].items()})
-        getattr(learner, f"{part}_target").load_state_dict(net.state_dict())
+        if part in _PARTS and not states[f"{part}_target"]:
+            getattr(learner, f"{part}_target").load_state_dict(net.state_dict())
 
 
 class PolicyPublisher:

@@ -198,13 +198,16 @@ class MemoryClient(ServiceClient):
 
     # --- the memory's operations --------------------------------------------------------------
     def store(self, transitions: Transitions, *, timeout: float | None = None,
-              request_id: int | None = None) -> StoreReply:
+              request_id: int | None = None, relabel: bool = False) -> StoreReply:
         """Store N transitions (value_labels required, one per transition); a refused batch stores nothing.
         Waits while the node's rate limiter holds it back (``rate_limit_timeout``); sent again with the same
         request id when its answer is lost (``resend_s``), so it is applied once. request_id: None = a new
         one (:func:`new_request_id`); a caller that retries a store after a ServiceTimeout passes the id of
-        the first try, so the memory applies the batch at most once."""
-        req = Store.Request(request_id=new_request_id() if request_id is None else int(request_id))
+        the first try, so the memory applies the batch at most once. relabel: these transitions were
+        stored once already and go again with fresh value labels (``restore_batch``); the node's rate
+        limiter neither holds them back nor counts them as inserts."""
+        req = Store.Request(request_id=new_request_id() if request_id is None else int(request_id),
+                            relabel=bool(relabel))
         transitions_to_batch(transitions, req.batch)
         r = self._call_limited(self._store, req, timeout)
         return StoreReply(seq_to_numpy(r.identity_ids, np.uint64), int(r.new_identities), int(r.stored),

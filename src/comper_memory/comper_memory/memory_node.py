@@ -287,7 +287,8 @@ class MemoryNode(Node):
             t = batch_to_transitions(request.batch)
             with self._open():
                 # validates all and applies chunk 1; a re-send of a store in progress or remembered gets that one
-                op = self.memory.begin_store(t, self.store_chunk, request_id=int(request.request_id))
+                op = self.memory.begin_store(t, self.store_chunk, request_id=int(request.request_id),
+                                             relabel=bool(request.relabel))
             while not op.done:
                 await _next_turn(self.executor)
                 with self._open():

@@ -101,12 +101,13 @@ class CompactMemory:
         self.index = make_index(self.config, key, self.slots, self.index_engine)
 
     # ================================================================== store
-    def store(self, t: Transitions, request_id: int = 0) -> StoreResult:
+    def store(self, t: Transitions, request_id: int = 0, relabel: bool = False) -> StoreResult:
         """Store a batch (thesis Algorithm 6), atomically; raise MemoryInputError on bad input.
-        request_id (0 = none): see :meth:`begin_store`."""
-        return self.begin_store(t, chunk=0, request_id=request_id).result()
+        request_id (0 = none), relabel: see :meth:`begin_store`."""
+        return self.begin_store(t, chunk=0, request_id=request_id, relabel=relabel).result()
 
-    def begin_store(self, t: Transitions, chunk: int = 0, request_id: int = 0) -> ChunkedStore:
+    def begin_store(self, t: Transitions, chunk: int = 0, request_id: int = 0,
+                    relabel: bool = False) -> ChunkedStore:
         """Validate a whole batch, admit it to the rate limiter and apply its first ``chunk``
         transitions (0: all of them), under one hold of the lock; :meth:`ChunkedStore.step`
         applies the rest, one chunk per call, each under its own hold of the lock.
@@ -120,7 +121,11 @@ class CompactMemory:
 
         request_id > 0: the client's id of this batch. A store with the id of one still in progress
         or remembered (``resend_window``) is not applied again: it returns that store (``repeated``
-        True; step it like any other), before validation and the rate limiter."""
+        True; step it like any other), before validation and the rate limiter.
+
+        relabel: the batch is transitions stored once already, sent again with fresh value labels
+        (``restore_batch``); stored like any other, but the rate limiter neither holds it back nor
+        counts it as inserts (:mod:`.rate_limiter`)."""
         with self._lock:
             rid = int(request_id)
             same = self.stores.known(rid)
@@ -130,15 +135,16 @@ class CompactMemory:
             clean, keys = validate_store(t, self.config, self.schema, self.expected_key_size)
             if same is not None:   # cut short by a restart: the rest of it, admitted when it was first sent
                 same.resume(clean, keys, chunk)
-                self.rate.inserted(same.n - same.applied)
+                self.rate.inserted(same.n - same.applied, relabel)
                 same.step_locked()
                 return same.repeat()
-            self.rate.check_insert(len(clean), self.slots.n_live)
+            if not relabel:
+                self.rate.check_insert(len(clean), self.slots.n_live)
             if self.schema is None:
                 self._init_schema(schema_of(clean))
             op = ChunkedStore(self, clean, keys, int(chunk) if chunk and chunk > 0 else len(clean), rid)
             op.step_locked()
-            self.rate.inserted(len(clean))   # admitted whole: later chunks are not checked again
+            self.rate.inserted(len(clean), relabel)   # admitted whole: later chunks are not checked again
             return op
 
     def _store_chunk(self, clean: Transitions, keys: np.ndarray, request: np.ndarray | None) -> StoreResult:

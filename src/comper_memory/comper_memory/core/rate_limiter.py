@@ -12,6 +12,11 @@ and a sample of k while the memory holds at least min_size_to_sample identities 
 diff - k >= offset - error_buffer. Stores are free while the memory holds fewer than
 min_size_to_sample identities (there is nothing to sample yet, so nothing could release them).
 
+A store marked *relabel* (transitions a learner stored once already, sent again with fresh value
+labels: ``restore_batch``) is neither checked nor counted as an insert: it is not a new
+environment step, and counting it would let the sampler run ahead of the actors by the re-stores.
+It is counted apart (``rate_relabelled``).
+
 A call the limiter holds back raises :class:`RateLimited` before anything changes; the memory node
 answers it with ``rate_limited: true`` and the client retries until the call passes or its timeout
 runs out. So the waiting happens in the caller, never in the server: the node serves every other
@@ -41,7 +46,7 @@ class RateLimiter:
 
     #: the stats it adds to the memory's: counts of this process's life, not part of the memory's state
     STATS = ("rate_inserts", "rate_samples", "samples_per_insert_held", "rate_limited_stores",
-             "rate_limited_samples")
+             "rate_limited_samples", "rate_relabelled")
 
     def __init__(self, min_size_to_sample: int = 0, samples_per_insert: float = 0.0,
                  error_buffer: float = 0.0):
@@ -56,6 +61,7 @@ class RateLimiter:
         self.error_buffer = float(error_buffer)
         self.inserts = 0
         self.samples = 0
+        self.relabelled = 0          # transitions stored as relabels: neither checked nor counted as inserts
         self.blocked_inserts = 0     # store calls held back (each retry counts)
         self.blocked_samples = 0     # sample calls held back
         self._base = 0.0             # diff at the start (recovered memories start at the offset)
@@ -111,18 +117,22 @@ class RateLimiter:
                 f"sample of {k} waits for stores: it would put the samples owed at {after:g} "
                 f"(inserts x {spi:g} - samples), below the limit {self.offset - self.error_buffer:g}")
 
-    def inserted(self, n: int) -> None:
-        self.inserts += int(n)
+    def inserted(self, n: int, relabel: bool = False) -> None:
+        if relabel:
+            self.relabelled += int(n)
+        else:
+            self.inserts += int(n)
 
     def sampled(self, k: int) -> None:
         self.samples += int(k)
 
     def recovered(self, size: int) -> None:
         """Counts restart after a recovery: at the balance point once the memory can be sampled."""
-        self.inserts = self.samples = 0
+        self.inserts = self.samples = self.relabelled = 0
         self._base = self.offset if size >= self.min_size_to_sample else 0.0
 
     def stats(self) -> dict:
         return {"rate_inserts": self.inserts, "rate_samples": self.samples,
                 "samples_per_insert_held": self.samples / self.inserts if self.inserts else 0.0,
-                "rate_limited_stores": self.blocked_inserts, "rate_limited_samples": self.blocked_samples}
+                "rate_limited_stores": self.blocked_inserts, "rate_limited_samples": self.blocked_samples,
+                "rate_relabelled": self.relabelled}
