@@ -218,7 +218,8 @@ class ComcactNodeConfig(AgentRunConfig):
     reduce_batch: int = redefault(AgentRunConfig, "reduce_batch", 50_000)
     restore_batch: bool = param(
         False, "comcact: re-store each updated batch into TM with fresh value labels (computed after the "
-        "update by label_critic's networks; sent with the next store call), so that a sampled transition's set "
+        "update by label_critic's networks; sent with the next store call, in mode async every 20 updates marked "
+        "relabel, which the memory's rate limiter does not count), so that a sampled transition's set "
         "collects a history of labels for QT to learn from, as in COMPER",
         thesis="no re-store in Algorithm 8 (each transition keeps the label of its store time)",
         deviation="true: labels that follow the critic; on continuous tasks almost every set has one member, so "
