@@ -7,18 +7,9 @@ import torch
 from comper_agent.core.comcact import ComcactLearner
 from comper_agent.core.config import ComcactConfig
 from comper_agent.policy_weights import config_of_policy, load_policy_msg, policy_to_msg
-from comper_msgs_py.arrays import Transitions
+from test_agent_checkpoint import cont_batch as batch
 
 torch.set_num_threads(1)
-
-
-def batch(n=32, seed=0):
-    rng = np.random.default_rng(seed)
-    return Transitions(states=rng.normal(size=(n, 3)).astype(np.float32),
-                       actions=rng.uniform(-1, 1, size=(n, 1)).astype(np.float32),
-                       rewards=rng.normal(size=n).astype(np.float32),
-                       next_states=rng.normal(size=(n, 3)).astype(np.float32),
-                       terminated=np.zeros(n, bool), truncated=np.zeros(n, bool))
 
 
 def trained(label_critic):
