@@ -173,6 +173,7 @@ class ComcactNode(AgentNode):
         """mode:=async: publish the policy, start the actors (embedded), then update continuously; the
         memory's rate limiter holds the update-to-data ratio, this loop only counts steps and evaluates."""
         p = self.p
+
         def stored_by_actors() -> int:
             """Transitions in the memory's count that are not this learner's re-stores (restore_batch)."""
             with self.ptimers("memory"):
