@@ -213,8 +213,7 @@ class ComcactNode(AgentNode):
             if since_count >= 20 or self.update_count == before:
                 self.step = max(self.step, env_steps())
                 since_count = 0
-                if self.comcact:
-                    self.mem.store(None)      # restore_batch: the re-stores of these updates, marked relabel
+                self._flush()                 # restore_batch: the re-stores of these updates, marked relabel
             if time.monotonic() - last_policy >= p.policy_period_s:
                 publish_policy()
                 last_policy = time.monotonic()
@@ -227,8 +226,7 @@ class ComcactNode(AgentNode):
         owed = int(p.replay_ratio * max(0, self.step - self.cfg.learning_starts))
         while self.update_count < owed and not self.stop_event.is_set():
             self._train_step()
-        if self.comcact:
-            self.mem.store(None)
+        self._flush()
         publish_policy(final=True)
 
     def shutdown(self) -> None:

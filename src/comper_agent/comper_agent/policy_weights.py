@@ -29,7 +29,7 @@ _TARGET_PARTS = ("actor_target", "critic_target")
 def _parts_of(learner) -> tuple[str, ...]:
     """The networks a message carries: the online actor and critic, and with label_critic target also
     the target networks, which then give the actors' labels (the learner's label rule)."""
-    return _PARTS + (_TARGET_PARTS if getattr(learner.config, "label_critic", "online") == "target" else ())
+    return _PARTS + (_TARGET_PARTS if learner.config.label_critic == "target" else ())
 
 
 def policy_to_msg(learner, *, version: int, env_steps: int, final: bool = False) -> PolicyWeights:
