@@ -176,6 +176,14 @@ def run_record(sd: Path) -> dict:
             "profile": s.get("profile")}
 
 
+def run_protocol(record: dict, budget: int) -> dict:
+    """The protocol figures of one run record: recomputed from its episodes where it keeps them, else the
+    figures its summary stored."""
+    if record.get("episode_frames"):
+        return protocol_summary(record["episode_returns"], record["episode_frames"], budget)
+    return record["protocol"]
+
+
 def reference_lines(path: Path | None, games: list[str]) -> list[str]:
     """Random play and the best constant action per game (atari_constant_actions.py's JSON)."""
     if path is None:
@@ -230,8 +238,7 @@ def report(args) -> None:
             if games:
                 lines += reference_lines(args.reference, [games[-1]])
             games.append(game)
-        pr = [protocol_summary(s["episode_returns"], s["episode_frames"], args.frames) if s.get("episode_frames")
-              else s["protocol"] for s in ss]
+        pr = [run_protocol(s, args.frames) for s in ss]
         star = "*" if any(p["last_k"] == 3 for p in pr) else ""
         entry = {"game": game, "variant": alg, "seeds": [s["seed"] for s in ss],
                  "last": [p["last_mean"] for p in pr], "last_k": [p["last_k"] for p in pr],

@@ -316,6 +316,13 @@ def at_step(evals, step):
     return cands[-1] if cands else None
 
 
+def return_at(evals, step: int, every: int) -> float | None:
+    """A run's evaluation return at ``step``: its last evaluation on the grid at or before it, if that one lies
+    within the last eval_every steps (None for a run that ended before)."""
+    e = at_step([{"step": st, "mean_return": mr} for st, mr in on_grid(evals, every)], step)
+    return e["mean_return"] if e is not None and e["step"] >= step - every + 1 else None
+
+
 def bootstrap_ci(values, n_boot: int = 10_000, seed: int = 0) -> tuple[float, float]:
     """Percentile bootstrap 95% interval of the mean of `values` (resampling the runs)."""
     import numpy as np
@@ -373,11 +380,7 @@ def report(args, base: Path) -> dict:
             cells = []
             row = {}
             for x in steps:
-                vals = []
-                for r in runs:
-                    e = at_step([{"step": st, "mean_return": mr} for st, mr in on_grid(r["evals"], args.eval_every)], x)
-                    if e is not None and e["step"] >= x - args.eval_every + 1:
-                        vals.append(e["mean_return"])
+                vals = [v for v in (return_at(r["evals"], x, args.eval_every) for r in runs) if v is not None]
                 if vals:
                     lo, hi = bootstrap_ci(vals)
                     cells.append(f"{np.mean(vals):.1f} [{lo:.1f}, {hi:.1f}] (n={len(vals)})")

@@ -1,23 +1,26 @@
 """The README's results tables are what users read first, so each figure in them must follow from the per-run
-files committed under docs/results/ by the benchmarks' own report code (mean over seeds, bootstrap 95% interval
-of that mean). A figure typed in by hand, or left behind when a sweep adds seeds, fails here.
+files committed under docs/results/ by the benchmarks' own report code (each run's figure, the mean over seeds and
+the bootstrap 95% interval of that mean). A figure typed in by hand, or left behind when a sweep adds seeds, fails
+here.
 
-SOURCES names, for each cell, the per-run files and the variant key the figure comes from; the figures themselves
-are recomputed. A cell with no per-run record is listed in NO_RUN_FILE with the reason."""
+MUJOCO and ATARI_RUNS name, for each cell, the per-run files and the variant key the figure comes from; the figures
+themselves are recomputed. A cell with no per-run record is listed in NO_RUN_FILE with the reason."""
 from __future__ import annotations
 
 import json
 import re
+from functools import cache
 from pathlib import Path
 
 import numpy as np
 
-from comper_agent.core.protocol import protocol_summary
 from scaffolding import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[2]
 LEARNING = ROOT / "docs" / "results" / "learning"
 ATARI = ROOT / "docs" / "results" / "atari"
+LEARNING_BENCH = load_benchmark("learning_bench")
+ATARI_BENCH = load_benchmark("atari_bench")
 
 # MuJoCo table: (task, column) -> [(learning_bench results file, algorithm key), ...]; the runs of all files are
 # joined by seed (a later file's seeds 3-4 extend an earlier file's 0-2).
@@ -100,29 +103,32 @@ def _shown(cell: str, figure: tuple[float, float, float, int]) -> list[str]:
 
 
 def _figure(values: list[float]) -> tuple[float, float, float, int]:
-    lo, hi = load_benchmark("learning_bench").bootstrap_ci(values)
+    lo, hi = LEARNING_BENCH.bootstrap_ci(values)
     return float(np.mean(values)), lo, hi, len(values)
+
+
+@cache
+def _read(path: Path):
+    return json.loads(path.read_text())
 
 
 def _mujoco_values(sources, step: int = 50_000) -> list[float]:
     by_seed = {}
     for tag, alg in sources:
-        runs = json.loads((LEARNING / f"{tag}.json").read_text())["runs"]
-        for r in runs.values():
-            at = [e[1] for e in r["evals"] if e[0] == step]
-            if r["algorithm"] == alg and at:
-                by_seed[r["seed"]] = at[0]
+        res = _read(LEARNING / f"{tag}.json")
+        for r in res["runs"].values():
+            v = LEARNING_BENCH.return_at(r["evals"], step, res["eval_every"])
+            if r["algorithm"] == alg and v is not None:
+                by_seed[r["seed"]] = v
     return [by_seed[s] for s in sorted(by_seed)]
 
 
 def _atari_values(game: str, sources, budget: int = 100_000) -> list[float]:
     by_seed = {}
     for name, variant in sources:
-        for r in json.loads((ATARI / f"{name}.json").read_text()):
+        for r in _read(ATARI / f"{name}.json"):
             if r["game"] == game and r["variant"] == variant:
-                p = (protocol_summary(r["episode_returns"], r["episode_frames"], budget) if r.get("episode_frames")
-                     else r["protocol"])
-                by_seed[r["seed"]] = p["last_mean"]
+                by_seed[r["seed"]] = ATARI_BENCH.run_protocol(r, budget)["last_mean"]
     return [by_seed[s] for s in sorted(by_seed)]
 
 
@@ -141,7 +147,7 @@ def test_mujoco_table_follows_from_the_per_run_files():
 
 def test_atari_table_follows_from_the_per_run_files():
     rows = _table("Atari, `data_efficient` profile, 100,000 frames")
-    ref = json.loads((ATARI / "constant-actions.json").read_text())
+    ref = _read(ATARI / "constant-actions.json")
     assert {r[0] for r in rows} == {"Asterix", "Freeway", "Seaquest"}
     wrong = []
     for row in rows:
@@ -155,9 +161,9 @@ def test_atari_table_follows_from_the_per_run_files():
         if not _rounds_to(cells["best constant action"], best_constant):
             wrong.append(f"{game}: the best constant action scores {best_constant:.2f}")
         for col, sources in ATARI_RUNS.items():
-            values = _atari_values(game, sources)
             if (game, col) in NO_RUN_FILE:
                 continue
+            values = _atari_values(game, sources)
             if cells[col] == "not run":
                 if values:
                     wrong.append(f"{game} / {col}: 'not run', but the files hold {len(values)} runs")
