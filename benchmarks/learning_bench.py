@@ -8,7 +8,8 @@ ROS_DOMAIN_ID; at most --parallel runs at a time. Results come from each run's m
 (evaluations: eval_episodes greedy episodes every eval_every steps on a separate environment; the
 time split logged at the end of the run). The table gives, per (task, algorithm), the mean over
 seeds with a bootstrap 95% confidence interval of the seed means, and how many runs reached
---target at any evaluation.
+--target at any evaluation; with --baseline, a second table gives each algorithm's difference to that
+one, with a bootstrap 95% interval of the difference.
 
     python benchmarks/learning_bench.py                                   # the MuJoCo protocol (long!)
     python benchmarks/learning_bench.py --tasks InvertedPendulum-v4 --seeds 1 --total-steps 20000
@@ -80,6 +81,10 @@ def parse_args(argv=None):
                     help="start every run of the grid afresh (its folder is replaced), even one that is done or can "
                          "continue from its checkpoint")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the tables/plots from <out>/<tag>")
+    ap.add_argument("--baseline", default=None, metavar="ALGORITHM",
+                    help="add a table of each other algorithm's difference to this one (difference of the means over "
+                         "seeds, bootstrap 95%% interval with each algorithm's seeds resampled on their own; 'above' or "
+                         "'below' only where that interval excludes 0), e.g. --baseline ddpg")
     ap.add_argument("--include", nargs="+", default=[], metavar="RESULTS_JSON",
                     help="results.json files of earlier sweeps (e.g. docs/results/learning/*.json, kept in git): "
                          "their runs join this table and the plots (a sweep split over several sessions or "
@@ -334,6 +339,63 @@ def bootstrap_ci(values, n_boot: int = 10_000, seed: int = 0) -> tuple[float, fl
     return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
 
 
+def bootstrap_diff_ci(values, baseline, n_boot: int = 10_000, seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap 95% interval of mean(values) - mean(baseline). The two groups are independent runs
+    (seed k of one algorithm is not paired with seed k of the other), so each group is resampled on its own."""
+    import numpy as np
+    v, b = np.asarray(values, float), np.asarray(baseline, float)
+    if v.size == 0 or b.size == 0:
+        raise ValueError("bootstrap_diff_ci needs at least one run in each group")
+    rng = np.random.default_rng(seed)
+    dv = v[rng.integers(0, v.size, size=(n_boot, v.size))].mean(axis=1)
+    db = b[rng.integers(0, b.size, size=(n_boot, b.size))].mean(axis=1)
+    d = dv - db
+    return float(np.percentile(d, 2.5)), float(np.percentile(d, 97.5))
+
+
+def difference(values, baseline) -> dict:
+    """One cell of the --baseline table: the difference of the means, its interval, and a verdict that says
+    'above' or 'below' only where the interval excludes 0."""
+    import numpy as np
+    lo, hi = bootstrap_diff_ci(values, baseline)
+    verdict = "above" if lo > 0 else "below" if hi < 0 else "not separated"
+    return {"diff": float(np.mean(values) - np.mean(baseline)), "ci95": [lo, hi], "verdict": verdict,
+            "n": len(values), "n_baseline": len(baseline)}
+
+
+def difference_table(args, table: dict, steps: list) -> tuple[list, dict]:
+    """Markdown lines and results of each algorithm's difference to args.baseline, from the main table's per-seed
+    values (the same runs, report steps and last-k column)."""
+    keys = [str(x) for x in steps] + (["final"] if args.final_evals > 0 else [])
+    heads = [f"return @ {x:,}" for x in steps] + ([f"last {args.final_evals} evals"] if args.final_evals > 0 else [])
+    lines = [f"Difference to {args.baseline} (this algorithm's mean minus {args.baseline}'s, bootstrap 95% interval "
+             "with each algorithm's seeds resampled on their own; above / below only where it excludes 0):", "",
+             "| task | algorithm | seeds (this / baseline) | " + " | ".join(heads) + " |",
+             "|---|---|---|" + "---|" * len(keys)]
+    out = {}
+    for t in args.tasks:
+        ref = table.get(f"{t}/{args.baseline}")
+        if not ref:
+            continue
+        for a in args.algorithms:
+            row = table.get(f"{t}/{a}")
+            if a == args.baseline or not row:
+                continue
+            cells, res = [], {}
+            for k in keys:
+                if k in row and k in ref:
+                    res[k] = difference(row[k]["values"], ref[k]["values"])
+                    d = res[k]
+                    cells.append(f"{d['diff']:+.1f} [{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}] {d['verdict']}")
+                else:
+                    cells.append("-")
+            if res:
+                out[f"{t}/{a}"] = res
+                n = next(iter(res.values()))
+                lines.append(f"| {t} | {a} | {n['n']} / {n['n_baseline']} | " + " | ".join(cells) + " |")
+    return lines, out
+
+
 def report(args, base: Path) -> dict:
     import numpy as np
     results = {"total_steps": args.total_steps, "eval_every": args.eval_every, "eval_episodes": args.eval_episodes,
@@ -409,6 +471,13 @@ def report(args, base: Path) -> dict:
             row["steps_per_s"] = float(np.mean(rates)) if rates else None
             results["table"][f"{t}/{a}"] = row
             lines.append(f"| {t} | {a} | {len(runs)} | " + " | ".join(cells) + f" | {rate} |")
+    if args.baseline:
+        if args.baseline not in args.algorithms:
+            print(f"[bench] --baseline {args.baseline}: not among the algorithms reported; no difference table",
+                  flush=True)
+        else:
+            diff_lines, results["differences"] = difference_table(args, results["table"], steps)
+            lines += ["", *diff_lines]
     md = ["# Learning benchmark", "",
           f"{args.total_steps:,} steps per run, evaluation every {args.eval_every:,} steps "
           f"({args.eval_episodes} greedy episodes), mean over seeds of the per-run mean evaluation return with "

@@ -48,3 +48,38 @@ def test_a_resumed_run_keeps_its_last_sessions_evaluations_and_sums_its_sessions
     merged = b.run_timers([one, two])
     assert (merged["elapsed_s"], merged["steps"], merged["steps_per_s"], merged["sessions"]) == (400.0, 3000, 7.5, 2)
     assert merged["phases"] == {"learner": {"seconds": 260.0, "calls": 2800}, "qt": {"seconds": 50.0, "calls": 4}}
+
+
+def test_difference_to_a_baseline_resamples_each_algorithm_on_its_own_and_says_above_only_when_0_is_out():
+    import numpy as np
+    b = _bench()
+    base = [100.0, 110.0, 90.0, 105.0, 95.0]
+    far = [200.0, 210.0, 190.0]
+    d = b.difference(far, base)
+    assert d["diff"] == np.mean(far) - np.mean(base) == 100.0
+    assert d["verdict"] == "above" and d["ci95"][0] <= 100.0 <= d["ci95"][1] and (d["n"], d["n_baseline"]) == (3, 5)
+    assert b.difference(base, far)["verdict"] == "below"
+    # overlapping groups: the interval straddles 0
+    assert b.difference([90.0, 120.0, 95.0, 115.0], base)["verdict"] == "not separated"
+    # a baseline of one run adds no spread: the interval is the other group's bootstrap interval shifted by it
+    lo, hi = b.bootstrap_diff_ci(far, [150.0])
+    blo, bhi = b.bootstrap_ci(far)
+    assert abs(lo - (blo - 150.0)) < 5.0 and abs(hi - (bhi - 150.0)) < 5.0
+    # identical constant groups: a zero-width interval at 0, not a difference
+    assert b.difference([5.0, 5.0], [5.0, 5.0, 5.0]) == {"diff": 0.0, "ci95": [0.0, 0.0], "verdict": "not separated",
+                                                         "n": 2, "n_baseline": 3}
+
+
+def test_the_difference_table_reads_the_main_tables_per_seed_values_for_each_task_with_the_baseline():
+    from types import SimpleNamespace
+    b = _bench()
+    args = SimpleNamespace(baseline="ddpg", final_evals=3, tasks=["T-v4", "U-v4"], algorithms=["ddpg", "comcact"])
+    cell = lambda vals: {"values": vals}
+    table = {"T-v4/ddpg": {"50000": cell([1.0, 2.0, 3.0]), "final": cell([1.0, 2.0, 3.0])},
+             "T-v4/comcact": {"50000": cell([11.0, 12.0, 13.0]), "final": cell([0.0, 2.0, 4.0])},
+             "U-v4/comcact": {"50000": cell([5.0])}}                     # no baseline on U-v4: no row
+    lines, out = b.difference_table(args, table, [50000])
+    assert list(out) == ["T-v4/comcact"]
+    assert out["T-v4/comcact"]["50000"]["diff"] == 10.0 and out["T-v4/comcact"]["50000"]["verdict"] == "above"
+    assert out["T-v4/comcact"]["final"]["diff"] == 0.0 and out["T-v4/comcact"]["final"]["verdict"] == "not separated"
+    assert lines[-1].startswith("| T-v4 | comcact | 3 / 3 | +10.0 [") and "not separated" in lines[-1]
