@@ -52,6 +52,7 @@ ATARI_RUNS = {
     "DQN": [("data-efficient-runs", "dqn")],
     "DQN, n_step:=10": [("data-efficient-runs", "dqn_n10")],
     "COMPER": [("data-efficient-runs", "comper")],
+    "COMPER, n_step:=10": [("data-efficient-runs", "comper_n10")],
     "COMPER, label_network:=target": [("label-network-target-runs", "comper_tl")],
 }
 ATARI_COLUMNS = ["random play", "best constant action", *ATARI_RUNS]
