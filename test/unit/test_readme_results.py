@@ -25,10 +25,11 @@ ATARI_BENCH = load_benchmark("atari_bench")
 # MuJoCo table: (task, column) -> [(learning_bench results file, algorithm key), ...]; the runs of all files are
 # joined by seed (a later file's seeds 3-4 extend an earlier file's 0-2).
 MUJOCO = {
-    ("Hopper-v4", "DDPG"): [("s12-hopper-base", "ddpg")],
+    ("Hopper-v4", "DDPG"): [("s12-hopper-base", "ddpg"), ("s27-hopper-s34", "ddpg")],
     ("Hopper-v4", "thesis"): [("s12-hopper-base", "comcact")],
     ("Hopper-v4", "fresh_labels"): [("s12-hopper-restore", "comcact_restore")],
-    ("Hopper-v4", "fresh_labels_gate"): [("s16-hopper-gate", "comcact_restore_gate")],
+    ("Hopper-v4", "fresh_labels_gate"): [("s16-hopper-gate", "comcact_restore_gate"),
+                                         ("s27-hopper-s34", "comcact_restore_gate")],
     ("Walker2d-v4", "DDPG"): [("s15-walker", "ddpg"), ("s21-walker-s34", "ddpg")],
     ("Walker2d-v4", "thesis"): [("s15-walker", "comcact")],
     ("Walker2d-v4", "fresh_labels"): [("s15-walker", "comcact_restore")],
