@@ -334,9 +334,13 @@ def bootstrap_ci(values, n_boot: int = 10_000, seed: int = 0) -> tuple[float, fl
     v = np.asarray(values, float)
     if v.size < 2:
         return float(v.mean()), float(v.mean())
-    idx = np.random.default_rng(seed).integers(0, v.size, size=(n_boot, v.size))
-    means = v[idx].mean(axis=1)
+    means = resampled_means(v, np.random.default_rng(seed), n_boot)
     return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
+
+
+def resampled_means(v, rng, n_boot: int):
+    """The means of n_boot resamples (with replacement) of the runs' values `v`."""
+    return v[rng.integers(0, v.size, size=(n_boot, v.size))].mean(axis=1)
 
 
 def bootstrap_diff_ci(values, baseline, n_boot: int = 10_000, seed: int = 0) -> tuple[float, float]:
@@ -347,9 +351,7 @@ def bootstrap_diff_ci(values, baseline, n_boot: int = 10_000, seed: int = 0) -> 
     if v.size == 0 or b.size == 0:
         raise ValueError("bootstrap_diff_ci needs at least one run in each group")
     rng = np.random.default_rng(seed)
-    dv = v[rng.integers(0, v.size, size=(n_boot, v.size))].mean(axis=1)
-    db = b[rng.integers(0, b.size, size=(n_boot, b.size))].mean(axis=1)
-    d = dv - db
+    d = resampled_means(v, rng, n_boot) - resampled_means(b, rng, n_boot)
     return float(np.percentile(d, 2.5)), float(np.percentile(d, 97.5))
 
 
@@ -384,8 +386,7 @@ def difference_table(args, table: dict, steps: list) -> tuple[list, dict]:
             cells, res = [], {}
             for k in keys:
                 if k in row and k in ref:
-                    res[k] = difference(row[k]["values"], ref[k]["values"])
-                    d = res[k]
+                    d = res[k] = difference(row[k]["values"], ref[k]["values"])
                     cells.append(f"{d['diff']:+.1f} [{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}] {d['verdict']}")
                 else:
                     cells.append("-")
