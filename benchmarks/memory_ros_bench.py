@@ -116,7 +116,7 @@ class RemoteMemory:
         from comper_memory.client import MemoryClient
         ros2 = shutil.which("ros2")
         if ros2 is None:
-            sys.exit("no ros2 command on PATH: source env.sh first (cd /work/main && . ./env.sh)")
+            sys.exit("no ros2 command on PATH: source env.sh first (. ./env.sh in the workspace root)")
         self.name = f"bench_memory_{os.getpid()}_{executor_threads}"
         self.log_path = Path(log_dir) / f"{self.name}.log"
         self._log = open(self.log_path, "wb")

@@ -100,7 +100,7 @@ class RemoteSim:
         from comper_msgs.srv import EnvInfo, Reset, Step, StepMany
         ros2 = shutil.which("ros2")
         if ros2 is None:
-            sys.exit("no ros2 command on PATH: source env.sh first (cd /work/main && . ./env.sh)")
+            sys.exit("no ros2 command on PATH: source env.sh first (. ./env.sh in the workspace root)")
         self.name = f"bench_sim_{os.getpid()}_{env_id.replace('/', '_').replace('-', '_')}"
         self.log_path = Path(log_dir) / f"{self.name}.log"
         self._log = open(self.log_path, "wb")
