@@ -305,3 +305,32 @@ def test_grid_top_corner_cells_are_found():
         for t in parts + parts:                      # the second pass re-stores every transition
             np.testing.assert_array_equal(mem.store(t).identity_ids, ref.store(t))
         assert mem.stats()["identities"] == 96
+
+
+def test_grid_refit_on_wide_keys_streams_the_sample_in_blocks(monkeypatch):
+    """Atari-width keys (14,114 values): the PCA refit gets the sample in row blocks of at most
+    ``(1 << 22) // key_dim`` rows, never the whole sample at full width (20,000 keys of 4 stacked
+    frames would be 4.5 GB as float32), and the decisions stay those of the brute-force reference."""
+    from comper_memory.core import grid_cells
+    seen = []
+    fit = grid_cells.GridCells.fit_directions
+
+    def spy(self, blocks, rng):
+        blocks = list(blocks)
+        seen.append([len(b) for b in blocks])
+        return fit(self, blocks, rng)
+
+    monkeypatch.setattr(grid_cells.GridCells, "fit_directions", spy)
+    rng = np.random.default_rng(15)
+    base = make(rng, 400, obs=(84, 84), dtype=np.uint8, discrete=True)
+    step = (1 << 22) // 14114
+    s = base.states.copy()
+    s[::3, 0, 0] ^= 1  # one pixel off by 1/255: within delta of its original
+    near = Transitions(s, base.actions, base.rewards, base.next_states, base.terminated, base.truncated,
+                       value_labels=base.value_labels)
+    mem, ref = _mem("grid", delta=1e-4), Reference(1e-4)
+    for t in (base, near):
+        np.testing.assert_array_equal(mem.store(t).identity_ids, ref.store(t))
+    assert seen, "no refit happened"
+    assert max(len(b) for b in seen) > 1 and max(max(b) for b in seen) <= step
+    assert sum(seen[-1]) == mem.index.n_at_build

@@ -25,6 +25,8 @@ Why no identity within delta can be missed, with r = sqrt(delta):
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 
 from .similarity import SUBSPACE, U32
@@ -69,14 +71,19 @@ class GridCells:
         g = self.P @ self.P.T - np.eye(len(self.P))
         self.e_o = float(np.sqrt((g * g).sum())) + 1e-15
 
-    def fit_directions(self, X: np.ndarray, rng: np.random.Generator) -> None:
-        """New P: the mf largest PCA directions of the sample keys X (float64, modified)."""
+    def fit_directions(self, blocks: Iterable[np.ndarray], rng: np.random.Generator) -> None:
+        """New P: the mf largest PCA directions of the sample keys, given as row blocks [k, D].
+
+        Wide keys are projected block by block onto a random SUBSPACE-dimensional subspace first, so
+        only that projection of the whole sample is ever held: 20,000 Atari keys of 4 stacked frames
+        (D = 56,450) are 4.5 GB as float32 and twice that as float64, their projection 10 MB."""
         if self.key_dim > SUBSPACE:
             q, _ = np.linalg.qr(rng.standard_normal((self.key_dim, SUBSPACE)))
             R = np.ascontiguousarray(q.T)  # [64, D] orthonormal rows
-            X = X @ R.T
+            X = np.concatenate([np.asarray(b, dtype=np.float64) @ R.T for b in blocks])
         else:
             R = None
+            X = np.concatenate([np.asarray(b, dtype=np.float64) for b in blocks])
         # robust directions: each column winsorised at its 1st / 99th percentile, so a few
         # outlying keys (one huge value) cannot take over an axis (speed only, never results)
         if len(X) >= 100:

@@ -178,8 +178,8 @@ class GridIndex(SimilarityIndex):
         step = max(1, (1 << 22) // max(1, self.key_dim))
         if refit and n >= 2:
             rng = np.random.default_rng(self.seed + n)
-            samp = np.sort(rng.choice(n, size=min(n, 20000), replace=False))
-            g.fit_directions(self.source.keys_of(ids[samp]).astype(np.float64), rng)
+            samp = ids[np.sort(rng.choice(n, size=min(n, 20000), replace=False))]
+            g.fit_directions((self.source.keys_of(samp[s:s + step]) for s in range(0, len(samp), step)), rng)
         z = np.empty((n, self.mf))
         for s in range(0, n, step):
             keys = self.source.keys_of(ids[s:s + step])
