@@ -62,6 +62,15 @@ def perturbed(rng, t, scale, frac=1.0):
                        t.truncated, value_labels=rng.standard_normal(n).astype(np.float32))
 
 
+def one_pixel_off(t, rows):
+    """Copies of the uint8 transitions t whose first state pixel is off by 1 in ``rows``
+    (distance (1/255)^2 = 1.5e-5 from the original)."""
+    s = t.states.copy()
+    s[rows, 0, 0] ^= 1
+    return Transitions(s, t.actions, t.rewards, t.next_states, t.terminated, t.truncated,
+                       value_labels=t.value_labels)
+
+
 @pytest.mark.parametrize("delta", [0.0, 1e-4, 1e-2, 0.5])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_random_with_duplicates_and_near_duplicates(delta, seed):
@@ -130,11 +139,8 @@ def test_atari_uint8_keys():
     obs = (84, 84)
     base = make(rng, 30, obs=obs, dtype=np.uint8, discrete=True)
     assert transition_keys(base).shape == (30, 14114)
-    s = base.states.copy()
-    s[::2, 0, 0] ^= 1  # one pixel off by 1/255: distance (1/255)^2 = 1.5e-5 <= 1e-4
-    s[1::4, :3, :3] ^= 7  # far
-    near = Transitions(s, base.actions, base.rewards, base.next_states, base.terminated, base.truncated,
-                       value_labels=base.value_labels)
+    near = one_pixel_off(base, slice(0, None, 2))  # within 1e-4 of its original
+    near.states[1::4, :3, :3] ^= 7  # far
     for delta in (0.0, 1e-4):
         mem = CompactMemory(MemoryConfig(delta=delta))
         ref = Reference(delta)
@@ -324,10 +330,7 @@ def test_grid_refit_on_wide_keys_streams_the_sample_in_blocks(monkeypatch):
     rng = np.random.default_rng(15)
     base = make(rng, 400, obs=(84, 84), dtype=np.uint8, discrete=True)
     step = (1 << 22) // 14114
-    s = base.states.copy()
-    s[::3, 0, 0] ^= 1  # one pixel off by 1/255: within delta of its original
-    near = Transitions(s, base.actions, base.rewards, base.next_states, base.terminated, base.truncated,
-                       value_labels=base.value_labels)
+    near = one_pixel_off(base, slice(0, None, 3))  # within delta of its original
     mem, ref = _mem("grid", delta=1e-4), Reference(1e-4)
     for t in (base, near):
         np.testing.assert_array_equal(mem.store(t).identity_ids, ref.store(t))

@@ -243,9 +243,8 @@ class ExactIndex(SimilarityIndex):
     def reindex(self) -> None:
         """Index every live identity of the source anew (after a snapshot restore)."""
         ids = self.source.live_ids()
-        step = max(1, (1 << 24) // max(1, self.key_dim))
-        for s in range(0, len(ids), step):
-            self._add_faiss(ids[s:s + step], self.project(self.source.keys_of(ids[s:s + step])))
+        for s, keys in self.key_blocks(ids, 1 << 24):
+            self._add_faiss(ids[s:s + len(keys)], self.project(keys))
         self.maybe_rebuild(force=len(ids) >= self.min_train)
 
     def candidates_of(self, y: np.ndarray):

@@ -23,6 +23,7 @@ from .similarity import KeySource, SimilarityIndex
 __all__ = ["GridIndex"]
 
 _PAIR_CHUNK = 1 << 21  # candidate pairs expanded at once (bounds temporary memory)
+_KEY_BLOCK = 1 << 22  # key values per block when every live key is read (rebuild, re-fit)
 
 
 def _expand(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -175,16 +176,14 @@ class GridIndex(SimilarityIndex):
         g = self.grid
         ids = np.asarray(self.source.live_ids(), dtype=np.int64)
         n = len(ids)
-        step = max(1, (1 << 22) // max(1, self.key_dim))
         if refit and n >= 2:
             rng = np.random.default_rng(self.seed + n)
             samp = ids[np.sort(rng.choice(n, size=min(n, 20000), replace=False))]
-            g.fit_directions((self.source.keys_of(samp[s:s + step]) for s in range(0, len(samp), step)), rng)
+            g.fit_directions((keys for _, keys in self.key_blocks(samp, _KEY_BLOCK)), rng)
         z = np.empty((n, self.mf))
-        for s in range(0, n, step):
-            keys = self.source.keys_of(ids[s:s + step])
+        for s, keys in self.key_blocks(ids, _KEY_BLOCK):
             g.observe(keys)
-            z[s:s + step] = g.zproj(keys)
+            z[s:s + len(keys)] = g.zproj(keys)
         if refit or g.origin is None:
             g.fit(z)
         else:

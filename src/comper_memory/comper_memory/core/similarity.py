@@ -76,6 +76,13 @@ class SimilarityIndex:
         self.r = float(np.sqrt(self.delta))
         self.source = source
 
+    def key_blocks(self, ids: np.ndarray, values: int) -> Iterator[tuple[int, np.ndarray]]:
+        """(start, keys) of ``ids`` in row blocks of at most ``values`` key values (at least one
+        row): re-indexing reads the live keys this way, never all of them at full width at once."""
+        step = max(1, values // max(1, self.key_dim))
+        for s in range(0, len(ids), step):
+            yield s, self.source.keys_of(ids[s:s + step])
+
     def candidates_of(self, y: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """Yield (query, id) arrays, chunks of disjoint queries: a superset of the live stored
         identities within delta of each query."""
