@@ -121,14 +121,14 @@ def resume_status(run_dir: Path, budget: int | None = None) -> str:
     """What a second start of a split sweep does with a run folder: 'new' (no checkpoint yet: start it from
     nothing), 'done' (its last checkpoint is at or past ``budget``, counted in frames where the run counts
     frames, else agent steps; None: never done by this test) or 'continue' (a checkpoint before its budget
-    that holds the memory / replay contents: start it with ``resume``). ValueError for a checkpoint before its
-    budget without them (older code, or checkpoint_replay off): going on from an empty memory would change
-    what the run learns from."""
-    from comper_agent.core.checkpoint import load_checkpoint
-    ck = Path(run_dir) / "checkpoints" / "latest.pt"
-    if not ck.exists():
+    that holds the memory / replay contents: start it with ``resume``). The checkpoint is the one the node's
+    resume takes (run_io.resume_checkpoint: past a final checkpoint that a failed service left without them,
+    to the newest that holds them). ValueError for a checkpoint before its budget without them (older code,
+    or checkpoint_replay off): going on from an empty memory would change what the run learns from."""
+    from comper_agent.run_io import resume_checkpoint
+    if not (Path(run_dir) / "checkpoints" / "latest.pt").exists():
         return "new"
-    state = load_checkpoint(ck)
+    _, state, _ = resume_checkpoint(run_dir)
     counters = state.get("counters") or {}
     if budget is not None and counters.get("frames", counters.get("step", 0)) >= budget:
         return "done"

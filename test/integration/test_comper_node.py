@@ -4,7 +4,8 @@
   steps hold whole episodes; ~/episodes and ~/transitions received by this test: uint8 84x84 frames,
   18 actions, frames = 5 x steps (skipped frames counted), labels stored; sticky actions 0.25 in the
   run's env spec; summary.json with the protocol figures; checkpoint (with the memory node's snapshot),
-  then resume restores the memory and continues the step count, frames and episode list.
+  then resume restores the memory and continues the step count, frames and episode list (going back past a
+  final checkpoint that a failed service left without the memory).
 * comper_f, comper_m, dqn in parallel (distinct node names): each runs 300 steps and uses the
   sampling source / target / reducer it should (summary.json, checkpoint contents, phase timers).
 * record:=true (dqn, 300 steps): the in-process recorder's bag holds every episode and its transitions.
@@ -98,12 +99,20 @@ def test_comper_publishes_episodes_and_transitions_summary_checkpoint_and_resume
     saved = run_io.MetricsLog.read(run / "metrics.jsonl", "memory")     # the last one: at the final checkpoint
     assert saved and saved[-1]["identities"] > 0
 
+    # a later start that failed (its memory node did not answer) left a final checkpoint of weights and counters
+    # only on top (what agent_node writes then, run_io.REPLAY_SKIPPED): the resume goes back past it to step 420
+    failed = {k: v for k, v in st.items() if k != "replay"}
+    failed.update(counters={**st["counters"], "step": 421}, **{run_io.REPLAY_SKIPPED: "a service failed"})
+    run_io.RunDir(tmp_path, "cr").save_checkpoint(failed, 421)
+
     # resume: continues step, frames, episodes and updates in the same run directory
     second = launch("comper_agent", "comper_node",
                     *_args(tmp_path, "ignored", tag, *common, "-p", f"resume:={run}", "-p", "max_steps:=620"),
                     name="comper_resume")
     assert _wait(second, 150) == 0, second.log()[-4000:]
     assert "resuming at step 420" in second.log()
+    assert "latest.pt (step 421) holds no memory / replay contents (a service failed); continuing from " \
+           "step_000000420.pt" in second.log(), second.log()[-3000:]
     # the memory node's state went into the checkpoint and came back before the resumed run stored anything
     assert st["replay"]["kind"] == "memory" and (run / "checkpoints" / "step_000000420.memory").is_dir()
     restored = [ln for ln in second.log().splitlines() if "memory restored from" in ln]

@@ -38,6 +38,49 @@ def test_pruned_checkpoints_take_their_replay_contents_with_them(tmp_path):
         "latest.pt", "step_000000030.memory", "step_000000030.pt", "step_000000030.replay.npz"]
 
 
+def _companions(rd, step):
+    """The replay contents an embedded memory node writes beside the checkpoint of `step`."""
+    (rd.replay_path(step, "memory") / "state.npz").parent.mkdir(parents=True, exist_ok=True)
+    (rd.replay_path(step, "memory") / "state.npz").write_bytes(b"snapshot")
+    return {"kind": "memory", "request": rd.replay_path(step, "memory").name}
+
+
+def test_checkpoints_without_their_replay_contents_leave_the_newest_one_with_them(tmp_path):
+    """A run whose memory node stopped answering writes final checkpoints with weights and counters only
+    (run_io.REPLAY_SKIPPED): pruning keeps the newest checkpoint that has its memory beside it, and a resume
+    from the run directory goes back to it; a checkpoint named as a file is taken as it is."""
+    rd = run_io.RunDir(tmp_path, "r1")
+    for step in (10, 20):
+        rd.save_checkpoint({"counters": {"step": step}, "replay": _companions(rd, step)}, step, keep_last=1)
+    for step in (21, 22):           # two failed starts in a row: neither may take the memory's checkpoint away
+        rd.save_checkpoint({"counters": {"step": step}, run_io.REPLAY_SKIPPED: "a service failed"}, step, keep_last=1)
+    assert sorted(p.name for p in rd.checkpoints.iterdir()) == [
+        "latest.pt", "step_000000020.memory", "step_000000020.pt", "step_000000022.pt"]
+    ck, state, note = run_io.resume_checkpoint(rd.path)
+    assert ck.name == "step_000000020.pt" and state["counters"]["step"] == 20 and state["replay"]["kind"] == "memory"
+    assert "latest.pt (step 22) holds no memory / replay contents (a service failed)" in note
+    assert "continuing from step_000000020.pt" in note
+    ck, state, note = run_io.resume_checkpoint(rd.checkpoints / "step_000000022.pt")
+    assert ck.name == "step_000000022.pt" and note is None
+    # a regular checkpoint after the resume: the usual pruning, down to keep_last
+    rd.save_checkpoint({"counters": {"step": 30}, "replay": _companions(rd, 30)}, 30, keep_last=1)
+    assert sorted(p.name for p in rd.checkpoints.iterdir()) == ["latest.pt", "step_000000030.memory", "step_000000030.pt"]
+    ck, state, note = run_io.resume_checkpoint(rd.path)
+    assert ck.name == "latest.pt" and state["counters"]["step"] == 30 and note is None
+
+
+def test_resume_without_any_checkpoint_holding_replay_contents_takes_latest(tmp_path):
+    """Snapshots refused all run long (an external memory node without snapshot_root): every checkpoint is
+    marked, none holds the memory, so resume takes latest.pt (the node then warns that the memory refills)
+    and pruning goes on as usual."""
+    rd = run_io.RunDir(tmp_path, "r1")
+    for step in (10, 20, 30):
+        rd.save_checkpoint({"counters": {"step": step}, run_io.REPLAY_SKIPPED: "refused"}, step, keep_last=2)
+    assert sorted(p.name for p in rd.checkpoints.iterdir()) == ["latest.pt", "step_000000020.pt", "step_000000030.pt"]
+    ck, state, note = run_io.resume_checkpoint(rd.path)
+    assert ck.name == "latest.pt" and state["counters"]["step"] == 30 and note is None
+
+
 def test_metrics_log_and_csv(tmp_path):
     m = run_io.MetricsLog(tmp_path / "metrics.jsonl")
     m.write("eval", step=5, mean_return=np.float64(1.5), returns=np.array([1.0, 2.0]))

@@ -1,6 +1,7 @@
 """benchmarks/atari_bench.py and learning_bench.py: which runs a second start of a split sweep does again. A
 complete run is done; one stopped before its budget continues from its checkpoint when that holds the memory /
-replay contents, and is refused (not silently continued from an empty memory) when it does not."""
+replay contents, and is refused (not silently continued from an empty memory) when it does not. A run whose
+last checkpoint a failed service left without them continues from the newest checkpoint that holds them."""
 import json
 from pathlib import Path
 
@@ -61,3 +62,19 @@ def test_learning_bench_skips_runs_at_their_budget_and_continues_stopped_ones(tm
     with open(sb3 / "metrics.jsonl", "a") as f:
         f.write(json.dumps({"kind": "timers", "steps": 50000, "elapsed_s": 900.0}) + "\n")
     assert b.run_status(args, base, "sb3_ddpg", "Hopper-v4", 0) == "done"
+
+
+def test_a_run_stopped_by_a_failed_service_continues_from_its_last_checkpoint_with_memory(tmp_path):
+    """The memory node did not answer in time, so the final checkpoint holds weights and counters only
+    (run_io.REPLAY_SKIPPED): the bench continues the run (from the older checkpoint that holds the memory)
+    instead of refusing it."""
+    from comper_agent import run_io
+    b = _bench()
+    d = tmp_path / "runs" / "failed"
+    rd = run_io.RunDir(tmp_path / "runs", "failed")
+    (d / "checkpoints" / "step_000007500.memory").mkdir(parents=True)
+    rd.save_checkpoint({"counters": {"step": 7500, "frames": 37461},
+                        "replay": {"kind": "memory", "request": "step_000007500.memory"}}, 7500)
+    rd.save_checkpoint({"counters": {"step": 7501, "frames": 37466},
+                        run_io.REPLAY_SKIPPED: "a service failed"}, 7501)
+    assert b.run_status(tmp_path, "failed") == "continue"

@@ -266,17 +266,25 @@ class AgentNode(Node):
     def wall_time(self) -> float:
         return self.outputs.wall_time()
 
-    def save(self, final: bool = False, replay: bool = True) -> Path:
+    def save(self, final: bool = False, replay: bool = True, skipped: str = "") -> Path:
         """A checkpoint of this step: the replay's contents first (checkpoint_replay; `replay` False skips
-        them), then the state that names them."""
+        them, `skipped` says why), then the state that names them. A checkpoint that skips the contents its
+        run saves (run_io.REPLAY_SKIPPED) prunes no older one, and a resume of the run goes back to the newest
+        checkpoint that holds them (run_io.resume_checkpoint)."""
+        keeps = self.p.checkpoint_replay and (self.mem is not None or getattr(self, "replay", None) is not None)
         with self.ptimers("io"):
-            saved = self.experience.save(self.step) if replay and self.p.checkpoint_replay else None
+            saved = self.experience.save(self.step) if replay and keeps else None
             state = self._state()
             if saved is not None:
                 state["replay"] = saved
+            elif keeps:
+                state[run_io.REPLAY_SKIPPED] = skipped or self.experience.error or "not saved"
             path = self.outputs.save(state, self.step)
         self.log.info(f"{'final ' if final else ''}checkpoint: {path}"
-                      + (f" (with {self.experience.describe(saved)})" if saved is not None else ""))
+                      + (f" (with {self.experience.describe(saved)})" if saved is not None else "")
+                      + (f" (weights and counters only: {state[run_io.REPLAY_SKIPPED]}; a resume of the run goes "
+                         "back to the newest checkpoint that holds the memory / replay contents)"
+                         if replay is False and run_io.REPLAY_SKIPPED in state else ""))
         return path
 
     # ------------------------------------------------------------------------------ main loop
@@ -291,6 +299,8 @@ class AgentNode(Node):
         self._setup_learner()
         run = self.outputs
         if run.resume_state is not None:
+            if run.resume_note:
+                self.log.warning(run.resume_note)
             self._restore(run.resume_state)
             changed = changed_parameters(run.resume_state.get("config") or {},
                                          {"params": config_to_dict(self.p), "learner": config_to_dict(self.cfg)})
@@ -331,7 +341,8 @@ class AgentNode(Node):
                     self.log.error(f"the reduction in flight did not finish: {exc}")
             self._final_records(rc)
             try:
-                self.save(final=True, replay=rc == 0)   # a service failed or Ctrl-C twice: weights and counters only
+                self.save(final=True, replay=rc == 0,   # a service failed or Ctrl-C twice: weights and counters only
+                          skipped="a service failed" if rc == 1 else "interrupted twice")
             except Exception as exc:
                 self.log.error(f"final checkpoint failed: {exc}")
             steps = self.step - start_step

@@ -55,11 +55,10 @@ class AgentRun:
         self.p = p
         self.resume_state = None
         self.resume_path = None
+        self.resume_note = None      # why resume goes back past latest.pt (run_io.resume_checkpoint), for the log
         run_id, runs_root = p.run_id, Path(p.runs_root)
         if p.resume:
-            from .core.checkpoint import load_checkpoint
-            ck = run_io.resolve_checkpoint(p.resume)
-            self.resume_state = load_checkpoint(ck)
+            ck, self.resume_state, self.resume_note = run_io.resume_checkpoint(p.resume)
             meta = self.resume_state["run"]
             if meta["algorithm"] != p.algorithm or meta["env_id"] != p.env_id:
                 raise ValueError(f"{ck} is a {meta['algorithm']} run on {meta['env_id']}; start with "

@@ -33,6 +33,7 @@ class ExperienceCheckpoint:
         self.node = node
         self.quiesce = lambda: node.mem.store(None)
         self.warned = False
+        self.error = ""          # why the last save gave no memory snapshot ("" when it did)
 
     @property
     def timeout(self) -> float:
@@ -52,7 +53,9 @@ class ExperienceCheckpoint:
                     node.mem.collect(wait=True)
                 self.quiesce()
                 path, _ = node.mem.memory.snapshot(request, timeout=self.timeout)
+                self.error = ""
             except ServiceError as exc:     # refused, or the memory node is gone: the checkpoint goes on without
+                self.error = f"no snapshot from the memory node: {exc}"
                 if not self.warned:
                     self.warned = True
                     node.log.warning(f"checkpoints hold no memory contents: no snapshot from the memory node ({exc}); "

@@ -59,7 +59,8 @@ class AgentRunConfig:
         "<run_id>/step_<N>.memory under the memory node's snapshot_root) or the local replay buffer "
         "(step_<N>.replay.npz); resume restores it. false = weights and counters only, the memory refills "
         "after a resume")
-    keep_checkpoints: int = param(3, "step_<N>.pt files kept besides latest.pt (0 = keep all)", minimum=0)
+    keep_checkpoints: int = param(3, "step_<N>.pt files kept besides latest.pt (0 = keep all), and the newest one that "
+                                 "holds the memory / replay contents", minimum=0)
     progress_period_s: float = param(5.0, "seconds between console progress lines", minimum=0.0)
     tensorboard: bool = param(True, "write TensorBoard scalars to <run dir>/tb")
     record: bool = param(

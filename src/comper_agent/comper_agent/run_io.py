@@ -11,7 +11,7 @@ A run directory ``<runs_root>/<run_id>/`` holds:
 
 Pieces: :class:`RunDir`, :class:`MetricsLog`, :class:`CsvLog`, :class:`ScalarLog`,
 :class:`Progress` (rate-limited console line with steps/s and ETA), :class:`PhaseTimers`,
-:func:`resolve_checkpoint`, :func:`rng_state` / :func:`set_rng_state`, :func:`default_run_id`.
+:func:`resolve_checkpoint`, :func:`resume_checkpoint`, :func:`rng_state` / :func:`set_rng_state`, :func:`default_run_id`.
 """
 from __future__ import annotations
 
@@ -29,8 +29,8 @@ from typing import Any, Callable
 import numpy as np
 
 __all__ = ["RunDir", "MetricsLog", "CsvLog", "ScalarLog", "Progress", "PhaseTimers",
-           "resolve_checkpoint", "rng_state", "set_rng_state", "default_run_id", "format_duration",
-           "write_text_atomic"]
+           "resolve_checkpoint", "resume_checkpoint", "REPLAY_SKIPPED", "rng_state", "set_rng_state",
+           "default_run_id", "format_duration", "write_text_atomic"]
 
 
 def default_run_id(algorithm: str, env_id: str, seed: int, now: float | None = None) -> str:
@@ -97,19 +97,50 @@ class RunDir:
 
     def save_checkpoint(self, state: dict, step: int, keep_last: int = 3) -> Path:
         """Write ``step_<N>.pt`` and ``latest.pt`` atomically; keep the newest `keep_last` step files
-        (and their replay contents, :meth:`replay_path`)."""
+        (and their replay contents, :meth:`replay_path`), and the newest step file whose replay contents
+        are beside it, so that a run whose last checkpoints could not save them (:data:`REPLAY_SKIPPED`)
+        keeps one to resume from."""
         from .core.checkpoint import save_checkpoint
         path = save_checkpoint(self.checkpoint_path(step), state)
         save_checkpoint(self.checkpoints / "latest.pt", state)
         if keep_last > 0:
-            olds = sorted(self.checkpoints.glob("step_*.pt"))[:-keep_last]
-            for p in olds:
+            steps = sorted(self.checkpoints.glob("step_*.pt"))
+            with_replay = [p for p in steps if any(p.with_suffix(x).exists() for x in self.REPLAY_SUFFIXES.values())]
+            for p in steps[:-keep_last]:
+                if with_replay and p == with_replay[-1]:
+                    continue
                 for companion in (p, *(p.with_suffix(x) for x in self.REPLAY_SUFFIXES.values())):
                     if companion.is_dir():
                         shutil.rmtree(companion, ignore_errors=True)
                     else:
                         companion.unlink(missing_ok=True)
         return path
+
+
+#: the key of a checkpoint written without the experience its run saves with every other checkpoint (a
+#: memory or sim service failed, so the final checkpoint holds weights and counters only): its value says why
+REPLAY_SKIPPED = "replay_skipped"
+
+
+def resume_checkpoint(path: str | os.PathLike) -> tuple[Path, dict, str | None]:
+    """The checkpoint a run continues from, loaded: ``(file, state, note)``. A run directory or checkpoints
+    folder resolves to ``latest.pt``, except where that checkpoint was written without its run's experience
+    (:data:`REPLAY_SKIPPED`: a service failed at the end) and an older ``step_<N>.pt`` of the folder holds
+    it: the newest such one, so that the weights and the memory / replay contents the run continues with are
+    from the same step (the steps after it are run again); `note` then says so. A file given by name is
+    loaded as it is."""
+    from .core.checkpoint import load_checkpoint
+    ck = resolve_checkpoint(path)
+    state = load_checkpoint(ck)
+    if Path(path).expanduser().is_file() or REPLAY_SKIPPED not in state:
+        return ck, state, None
+    for older in sorted(ck.parent.glob("step_*.pt"), reverse=True):
+        older_state = load_checkpoint(older)
+        if "replay" in older_state:
+            return older, older_state, (
+                f"{ck.name} (step {state.get('counters', {}).get('step')}) holds no memory / replay contents "
+                f"({state[REPLAY_SKIPPED]}); continuing from {older.name}, the newest checkpoint that holds them")
+    return ck, state, None
 
 
 def resolve_checkpoint(path: str | os.PathLike) -> Path:
