@@ -268,9 +268,9 @@ class AgentNode(Node):
 
     def save(self, final: bool = False, replay: bool = True, skipped: str = "") -> Path:
         """A checkpoint of this step: the replay's contents first (checkpoint_replay; `replay` False skips
-        them, `skipped` says why), then the state that names them. A checkpoint that skips the contents its
-        run saves (run_io.REPLAY_SKIPPED) prunes no older one, and a resume of the run goes back to the newest
-        checkpoint that holds them (run_io.resume_checkpoint)."""
+        them, `skipped` says why), then the state that names them. A checkpoint without the contents its run
+        saves is marked (run_io.REPLAY_SKIPPED): pruning keeps the newest one that holds them, and a resume of
+        the run goes back to it (run_io.resume_checkpoint)."""
         keeps = self.p.checkpoint_replay and (self.mem is not None or getattr(self, "replay", None) is not None)
         with self.ptimers("io"):
             saved = self.experience.save(self.step) if replay and keeps else None

@@ -11,7 +11,8 @@ A run directory ``<runs_root>/<run_id>/`` holds:
 
 Pieces: :class:`RunDir`, :class:`MetricsLog`, :class:`CsvLog`, :class:`ScalarLog`,
 :class:`Progress` (rate-limited console line with steps/s and ETA), :class:`PhaseTimers`,
-:func:`resolve_checkpoint`, :func:`resume_checkpoint`, :func:`rng_state` / :func:`set_rng_state`, :func:`default_run_id`.
+:func:`resolve_checkpoint`, :func:`resume_checkpoint`, :func:`rng_state` / :func:`set_rng_state`,
+:func:`default_run_id`.
 """
 from __future__ import annotations
 
@@ -105,7 +106,8 @@ class RunDir:
         save_checkpoint(self.checkpoints / "latest.pt", state)
         if keep_last > 0:
             steps = sorted(self.checkpoints.glob("step_*.pt"))
-            with_replay = [p for p in steps if any(p.with_suffix(x).exists() for x in self.REPLAY_SUFFIXES.values())]
+            with_replay = [p for p in steps
+                           if any(p.with_suffix(x).exists() for x in self.REPLAY_SUFFIXES.values())]
             for p in steps[:-keep_last]:
                 if with_replay and p == with_replay[-1]:
                     continue
@@ -117,8 +119,8 @@ class RunDir:
         return path
 
 
-#: the key of a checkpoint written without the experience its run saves with every other checkpoint (a
-#: memory or sim service failed, so the final checkpoint holds weights and counters only): its value says why
+#: the key of a checkpoint written without the experience its run saves (a service failed, so the final
+#: checkpoint holds weights and counters only, or the memory node gave no snapshot): its value says why
 REPLAY_SKIPPED = "replay_skipped"
 
 
