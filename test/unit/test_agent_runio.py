@@ -26,23 +26,22 @@ def test_run_dir_config_and_checkpoints_are_atomic_and_weights_only_loadable(tmp
         run_io.resolve_checkpoint(tmp_path / "nope")
 
 
-def test_pruned_checkpoints_take_their_replay_contents_with_them(tmp_path):
-    rd = run_io.RunDir(tmp_path, "r1")
-    for step in (10, 20, 30):
-        rd.replay_path(step, "local").parent.mkdir(parents=True, exist_ok=True)
-        rd.replay_path(step, "local").write_bytes(b"npz")
-        (rd.replay_path(step, "memory") / "state.npz").parent.mkdir(parents=True)
-        (rd.replay_path(step, "memory") / "state.npz").write_bytes(b"snapshot")
-        rd.save_checkpoint({"step": step}, step, keep_last=1)
-    assert sorted(p.name for p in rd.checkpoints.iterdir()) == [
-        "latest.pt", "step_000000030.memory", "step_000000030.pt", "step_000000030.replay.npz"]
-
-
 def _companions(rd, step):
     """The replay contents an embedded memory node writes beside the checkpoint of `step`."""
     (rd.replay_path(step, "memory") / "state.npz").parent.mkdir(parents=True, exist_ok=True)
     (rd.replay_path(step, "memory") / "state.npz").write_bytes(b"snapshot")
     return {"kind": "memory", "request": rd.replay_path(step, "memory").name}
+
+
+def test_pruned_checkpoints_take_their_replay_contents_with_them(tmp_path):
+    rd = run_io.RunDir(tmp_path, "r1")
+    for step in (10, 20, 30):
+        rd.replay_path(step, "local").parent.mkdir(parents=True, exist_ok=True)
+        rd.replay_path(step, "local").write_bytes(b"npz")
+        _companions(rd, step)
+        rd.save_checkpoint({"step": step}, step, keep_last=1)
+    assert sorted(p.name for p in rd.checkpoints.iterdir()) == [
+        "latest.pt", "step_000000030.memory", "step_000000030.pt", "step_000000030.replay.npz"]
 
 
 def test_checkpoints_without_their_replay_contents_leave_the_newest_one_with_them(tmp_path):

@@ -271,13 +271,13 @@ class AgentNode(Node):
         them, `skipped` says why), then the state that names them. A checkpoint without the contents its run
         saves is marked (run_io.REPLAY_SKIPPED): pruning keeps the newest one that holds them, and a resume of
         the run goes back to it (run_io.resume_checkpoint)."""
-        keeps = self.p.checkpoint_replay and (self.mem is not None or getattr(self, "replay", None) is not None)
+        kept = self.experience.kept
         with self.ptimers("io"):
-            saved = self.experience.save(self.step) if replay and keeps else None
+            saved = self.experience.save(self.step) if replay and kept else None
             state = self._state()
             if saved is not None:
                 state["replay"] = saved
-            elif keeps:
+            elif kept:
                 state[run_io.REPLAY_SKIPPED] = skipped or self.experience.error or "not saved"
             path = self.outputs.save(state, self.step)
         self.log.info(f"{'final ' if final else ''}checkpoint: {path}"

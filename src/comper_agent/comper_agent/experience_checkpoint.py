@@ -36,6 +36,13 @@ class ExperienceCheckpoint:
         self.error = ""          # why the last save gave no memory snapshot ("" when it did)
 
     @property
+    def kept(self) -> bool:
+        """Whether this run's checkpoints save experience: checkpoint_replay, and a memory or a replay buffer."""
+        node = self.node
+        has_experience = node.mem is not None or getattr(node, "replay", None) is not None
+        return bool(node.p.checkpoint_replay) and has_experience
+
+    @property
     def timeout(self) -> float:
         return max(self.node.p.service_timeout_s, SNAPSHOT_TIMEOUT_S)
 

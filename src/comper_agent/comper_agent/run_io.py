@@ -96,6 +96,10 @@ class RunDir:
         """Where the checkpoint of `step` keeps its replay contents of `kind` (REPLAY_SUFFIXES)."""
         return self.checkpoint_path(step).with_suffix(self.REPLAY_SUFFIXES[kind])
 
+    def companions(self, checkpoint: Path) -> list[Path]:
+        """The replay contents' paths beside `checkpoint` (one per kind, :meth:`replay_path`), present or not."""
+        return [checkpoint.with_suffix(x) for x in self.REPLAY_SUFFIXES.values()]
+
     def save_checkpoint(self, state: dict, step: int, keep_last: int = 3) -> Path:
         """Write ``step_<N>.pt`` and ``latest.pt`` atomically; keep the newest `keep_last` step files
         (and their replay contents, :meth:`replay_path`), and the newest step file whose replay contents
@@ -106,12 +110,11 @@ class RunDir:
         save_checkpoint(self.checkpoints / "latest.pt", state)
         if keep_last > 0:
             steps = sorted(self.checkpoints.glob("step_*.pt"))
-            with_replay = [p for p in steps
-                           if any(p.with_suffix(x).exists() for x in self.REPLAY_SUFFIXES.values())]
+            with_replay = [p for p in steps if any(c.exists() for c in self.companions(p))]
             for p in steps[:-keep_last]:
                 if with_replay and p == with_replay[-1]:
                     continue
-                for companion in (p, *(p.with_suffix(x) for x in self.REPLAY_SUFFIXES.values())):
+                for companion in (p, *self.companions(p)):
                     if companion.is_dir():
                         shutil.rmtree(companion, ignore_errors=True)
                     else:
