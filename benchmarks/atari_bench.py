@@ -7,7 +7,8 @@ time. A run stopped before its budget (Ctrl-C, a session's end: summary.json say
 none yet) continues from its last checkpoint with ``resume`` when the bench is started again with the
 same arguments, memory or replay contents included (checkpoint_replay); a checkpoint without them is
 not continued (the run would go on from an empty memory): remove the run folder to start it again.
-When all runs are done (or with ``--report-only`` on an existing --out folder) it writes:
+When all runs are done (or with ``--report-only`` on an existing --out folder) it writes the following, for
+the games of ``--games`` and the variants of ``--variants`` only (this --out's runs and the included ones):
 
 * ``<out>/table.md`` + ``<out>/table.json``: per game and variant, the mean across seeds (with a
   bootstrap 95% confidence interval of that mean) of the run's mean of the last 10 training episodes
@@ -28,8 +29,9 @@ When all runs are done (or with ``--report-only`` on an existing --out folder) i
 
     python benchmarks/atari_bench.py --games Freeway --variants comper --seeds 0 --out benchmarks/out/atari
     python benchmarks/atari_bench.py                       # 5 games x 4 variants x 3 seeds (long)
-    python benchmarks/atari_bench.py --out benchmarks/out/atari --report-only \
-        --reference docs/results/atari/constant-actions.json --policy policy.json --include docs/results/atari/*-runs.json
+    python benchmarks/atari_bench.py --out benchmarks/out/atari --report-only --games Freeway Asterix Seaquest \
+        --variants comper dqn comper_n10 --variant comper_n10=comper:n_step=10 \
+        --include docs/results/atari/data-efficient-runs.json --reference docs/results/atari/constant-actions.json
 """
 from __future__ import annotations
 
@@ -220,6 +222,8 @@ def report(args) -> None:
     curves: dict = {}
     memory: dict = {}
     for rid, s in sorted(records.items()):
+        if s["game"] not in args.games or s["variant"] not in args.variants:
+            continue        # --games and --variants select the rows and curves, of this sweep and the includes
         key = (s["game"], s["variant"])
         rows.setdefault(key, []).append(s)
         curves.setdefault(s["game"], {}).setdefault(s["variant"], []).append((s["episode_frames"], s["episode_returns"]))
@@ -338,9 +342,11 @@ def report(args) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    ap.add_argument("--games", nargs="+", default=GAMES, help="ALE game names (ALE/<Game>-v5); default: %(default)s")
+    ap.add_argument("--games", nargs="+", default=GAMES,
+                    help="ALE game names (ALE/<Game>-v5): the runs, and the report's rows; default: %(default)s")
     ap.add_argument("--variants", nargs="+", default=VARIANTS,
-                    help=f"{', '.join(VARIANTS)} or a name defined with --variant; default: the four")
+                    help=f"{', '.join(VARIANTS)} or a name defined with --variant: the runs, and the report's "
+                         "rows (included runs of other variants are left out); default: the four")
     ap.add_argument("--variant", action="append", default=[], metavar="NAME=ALGORITHM:PARAM=VALUE[,PARAM=VALUE]",
                     help="a named configuration usable in --variants, e.g. dqn_n10=dqn:n_step=10 (its runs get "
                          "-p algorithm:=ALGORITHM -p PARAM:=VALUE ..., after every --ros-arg; repeatable)")
