@@ -198,6 +198,41 @@ def test_snapshot_paths_are_confined_and_services_can_be_turned_off(launch, clie
     assert wait_exit(proc4) == 1 and "snapshot_root" in proc4.log()
 
 
+def test_a_snapshot_call_sent_again_with_its_request_id_is_carried_out_once(launch, client_of, tmp_path):
+    """A save or restore whose answer was lost is sent again with its request id (MemoryClient does so after
+    resend_s): the node answers from the first call's answer and neither saves nor restores twice."""
+    storage = tmp_path / "storage"
+    proc, name = start(launch, "snapresend", "-p", f"storage_dir:={storage}", "-p", "snapshot_every:=0")
+    memory = client_of(name)
+    for j in range(3):
+        memory.store(make_batch(4, j, 16))
+    save = Snapshot.Request(op=Snapshot.Request.OP_SAVE, path="a", request_id=77)
+    first = memory._call(memory._snapshot, save)
+    assert not first.repeated and os.path.isdir(first.path)
+    shutil.rmtree(first.path)
+    again = memory._call(memory._snapshot, save)       # as if the first answer were lost
+    assert again.repeated and (again.path, again.wal_sequence) == (first.path, first.wal_sequence)
+    assert not os.path.exists(first.path)                # not saved a second time
+    memory.snapshot("b")
+    before = memory.stats()["identities"]
+    memory.store(make_batch(4, 9, 16))
+    restore = Snapshot.Request(op=Snapshot.Request.OP_RESTORE, path="b", request_id=78)
+    assert not memory._call(memory._snapshot, restore).repeated and memory.stats()["identities"] == before
+    memory.store(make_batch(4, 10, 16))
+    after = memory.stats()["identities"]
+    assert after > before
+    assert memory._call(memory._snapshot, restore).repeated
+    assert memory.stats()["identities"] == after          # the store after the restore is kept
+    restore.request_id = 79                               # a new id is a new restore
+    assert not memory._call(memory._snapshot, restore).repeated and memory.stats()["identities"] == before
+    # a refused call is not remembered: the same id is judged again once the snapshot exists
+    late = Snapshot.Request(op=Snapshot.Request.OP_RESTORE, path="c", request_id=80)
+    refused(proc, lambda: memory._call(memory._snapshot, late), "not a snapshot directory")
+    memory.snapshot("c")
+    assert not memory._call(memory._snapshot, late).repeated
+    assert proc.stop() == 0
+
+
 def test_repeated_sigterm_always_exits_cleanly(launch, client_of, tmp_path):
     """Issue 16 failure 6: of 50 SIGTERMs, 3 were ignored and 2 exited 1 with 'RCLError: context is
     not valid'. Eight starts (MEMORY_SIGTERM_ITERATIONS), each stopped by SIGTERM at a random

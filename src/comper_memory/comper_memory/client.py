@@ -130,11 +130,13 @@ class MemoryClient(ServiceClient):
     rate_limit_timeout: how long store and sample keep retrying a call that the node's rate limiter
     holds back (``rate_limited`` in the answer) before they raise :class:`RateLimitTimeout`
     (None = ``timeout``); retries back off from 1 ms to 50 ms.
-    resend_s: a store, sample or stats request whose answer has not come after this many seconds is sent again
-    (0 = never; then one lost answer costs the whole ``timeout``; a first call right after the node comes up
-    can lose its answer while discovery completes). Safe: every store carries a fresh request id, and the
-    node answers a re-sent one with the first one's answer without applying it twice (``resend_window``);
-    a re-sent sample is just another draw, a re-sent stats request another read. ``resent`` counts them.
+    resend_s: a store, sample, stats or snapshot request whose answer has not come after this many seconds
+    is sent again (0 = never; then one lost answer costs the whole ``timeout``; a first call right after the
+    node comes up can lose its answer while discovery completes). Safe: every store carries a fresh request
+    id, and the node answers a re-sent one with the first one's answer without applying it twice
+    (``resend_window``); a snapshot save or restore carries a request id too and is answered once (the node
+    remembers its last 64); a re-sent sample is just another draw, a re-sent stats request another read.
+    ``resent`` counts them.
     """
 
     REFUSED = MemoryServiceError
@@ -260,15 +262,20 @@ class MemoryClient(ServiceClient):
         """Save a verified snapshot: '' = the node's storage_dir (checkpoint + WAL rotation), a
         relative name = under the node's snapshot_root, an absolute path only inside it (paths are
         on the node's machine; anything else is refused). Returns (path written, wal_sequence)."""
-        r = self._call(self._snapshot, Snapshot.Request(op=Snapshot.Request.OP_SAVE, path=str(path)), timeout)
-        return r.path, int(r.wal_sequence)
+        return self._snapshot_call(Snapshot.Request.OP_SAVE, path, timeout)
 
     def restore(self, path: str = "", *, timeout: float | None = None) -> tuple[str, int]:
         """Replace the node's state by the snapshot at `path` ('' = storage_dir's snapshot, else
         confined to snapshot_root like :meth:`snapshot`); a corrupted or incompatible snapshot,
         a path outside snapshot_root or a node with snapshot_service other than save_restore
         raises MemoryServiceError and leaves the state untouched."""
-        r = self._call(self._snapshot, Snapshot.Request(op=Snapshot.Request.OP_RESTORE, path=str(path)), timeout)
+        return self._snapshot_call(Snapshot.Request.OP_RESTORE, path, timeout)
+
+    def _snapshot_call(self, op: int, path: str, timeout: float | None) -> tuple[str, int]:
+        """Sent again after ``resend_s`` without an answer, with the same fresh request id: the node answers a
+        re-send from the first call's answer and does not save or restore twice."""
+        request = Snapshot.Request(op=op, path=str(path), request_id=new_request_id())
+        r = self._call(self._snapshot, request, timeout, resend_s=self.resend_s)
         return r.path, int(r.wal_sequence)
 
 

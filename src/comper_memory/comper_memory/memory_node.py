@@ -42,6 +42,7 @@ All the memory logic lives in :mod:`comper_memory.core`.
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import os
 import sys
@@ -193,6 +194,10 @@ class MemoryNode(Node):
         self._warn_lock = threading.Lock()
         self._warn_last = -1e9
         self._warn_suppressed = 0
+        # snapshot answers by request id (a re-sent save or restore is answered, not carried out again);
+        # the lock also keeps a re-send from running beside its first call under a multi-threaded executor
+        self._snapshot_lock = threading.Lock()
+        self._snapshot_answers: collections.OrderedDict[int, tuple[str, int, str]] = collections.OrderedDict()
         self._group = ReentrantCallbackGroup()
         g = self._group
         self._stats_pub = self.create_publisher(MemoryStats, "~/stats", STATS_QOS, callback_group=g)
@@ -443,17 +448,29 @@ class MemoryNode(Node):
             return path, "restored"
         raise _Refused(f"snapshot: unknown op {request.op} (OP_SAVE=0, OP_RESTORE=1)")
 
+    #: how many successful snapshot answers the node remembers by request id (Snapshot.srv)
+    SNAPSHOT_ANSWERS = 64
+
     def _on_snapshot(self, request: Snapshot.Request, response: Snapshot.Response):
-        try:
-            with self._open():
-                path, what = self._snapshot(request)
-        except Exception as exc:
-            return self._refuse(response, "snapshot", exc)
+        rid = int(request.request_id)
+        with self._snapshot_lock:
+            remembered = self._snapshot_answers.get(rid) if rid else None
+            if remembered is None:
+                try:
+                    with self._open():
+                        path, what = self._snapshot(request)
+                except Exception as exc:
+                    return self._refuse(response, "snapshot", exc)
+                remembered = (path, int(self._stats()["wal_sequence"]), f"{what} {path}")
+                if rid:
+                    self._snapshot_answers[rid] = remembered
+                    while len(self._snapshot_answers) > self.SNAPSHOT_ANSWERS:
+                        self._snapshot_answers.popitem(last=False)
+                self.get_logger().info(f"snapshot {what}: {path} (wal_sequence {remembered[1]})")
+            else:
+                response.repeated = True
         response.success = True
-        response.path = path
-        response.wal_sequence = int(self._stats()["wal_sequence"])
-        response.message = f"{what} {path}"
-        self.get_logger().info(f"snapshot {what}: {path} (wal_sequence {response.wal_sequence})")
+        response.path, response.wal_sequence, response.message = remembered
         return response
 
     # --- shutdown -----------------------------------------------------------------------------
