@@ -63,9 +63,15 @@ class SimClient(ServiceClient):
         """The rclpy client of ``<sim>/step`` (for :func:`wait_for_services`)."""
         return self._step
 
+    #: seconds after which an unanswered ``info`` request is sent again (a read: repeating it is harmless).
+    #: A learner's first call is ``info``, and a new client's first answer can be lost while discovery
+    #: completes (docs/memory-service.md, "Lost answers and re-sends"); without it that costs the whole timeout
+    INFO_RESEND_S = 2.0
+
     def info(self, *, timeout: float | None = None) -> EnvInfo.Response:
-        """The task's description (id, spaces, frame skip, episode end rule, protocol as JSON)."""
-        return self._call(self._info, EnvInfo.Request(), timeout, check=False)
+        """The task's description (id, spaces, frame skip, episode end rule, protocol as JSON); sent again
+        every ``INFO_RESEND_S`` until answered or ``timeout`` is over."""
+        return self._call(self._info, EnvInfo.Request(), timeout, check=False, resend_s=self.INFO_RESEND_S)
 
     def reset(self, seed: int = -1, *, dtype=None, timeout: float | None = None) -> np.ndarray:
         """Start an episode; seed < 0 continues the node's random stream. Returns s_0 (a copy)."""
