@@ -1,7 +1,7 @@
-"""MemoryClient (and SimClient.info) re-send a request whose answer is lost (resend_s): a stats request unanswered after resend_s is sent
-again and the second answer returned, where before one lost answer cost the whole timeout (a test's first call
-to a freshly started memory node waited 20 s for it on a loaded machine). The futures are rclpy's own; the node
-and client objects stand in for rclpy's only where MemoryClient creates and calls its clients."""
+"""MemoryClient (and SimClient.info) re-send a request whose answer is lost (resend_s): a stats request unanswered
+after resend_s is sent again and the second answer returned, where before one lost answer cost the whole timeout (a
+test's first call to a freshly started memory node waited 20 s for it on a loaded machine). The futures are rclpy's
+own; the node and client objects stand in for rclpy's only where the clients create and call their rclpy clients."""
 import time
 
 from rclpy.task import Future
