@@ -23,7 +23,8 @@ the games of ``--games`` and the variants of ``--variants`` only (this --out's r
 * ``<out>/runs.json``: the per-run figures (small; keep it in git and pass it to ``--include`` to
   merge a sweep split over several sessions or machines: runs of this --out win on the same id);
 * ``<out>/curve_<game>.png``: training episode returns against frames, one line per variant
-  (mean over seeds on a common frame grid, band = min..max);
+  (mean over seeds on a common frame grid, band = min..max; a run's line ends at the frames it has played,
+  so a run still under way, "unfinished" in the legend and in the table's seeds cell, is not drawn further);
 * ``<out>/memory_<game>.png`` + ``memory.json``: identities, TM sets, RTM size and the mean size of
   the sampled similar-transition sets over frames (comper_node's ``memory`` records).
 
@@ -206,6 +207,21 @@ def reference_lines(path: Path | None, games: list[str]) -> list[str]:
     return out
 
 
+def frames_reached(record: dict) -> int:
+    """The frames a run has played: its summary's, or its last episode's end where that is later (a run under
+    way writes its summary when it stops or ends, its episodes as they end)."""
+    return max([record["frames"], *record["episode_frames"]])
+
+
+def curve_on_grid(grid: np.ndarray, frames: list, returns: list, reached: float) -> np.ndarray:
+    """One run's training-episode returns on the frame grid: interpolated between episode ends, NaN before the
+    first, the last episode's return held from its end up to the frames the run reached (the episode under way
+    at the end of a complete run), and NaN beyond them: an unfinished run's line stops where the run stopped."""
+    y = np.interp(grid, frames, returns, left=np.nan, right=returns[-1])
+    y[grid > reached] = np.nan
+    return y
+
+
 def report(args) -> None:
     out = Path(args.out)
     records = {}
@@ -226,7 +242,8 @@ def report(args) -> None:
             continue        # --games and --variants select the rows and curves, of this sweep and the includes
         key = (s["game"], s["variant"])
         rows.setdefault(key, []).append(s)
-        curves.setdefault(s["game"], {}).setdefault(s["variant"], []).append((s["episode_frames"], s["episode_returns"]))
+        curves.setdefault(s["game"], {}).setdefault(s["variant"], []).append(
+            (s["episode_frames"], s["episode_returns"], frames_reached(s), s["complete"]))
         mdir = out / "runs" / rid / "metrics.jsonl"
         if mdir.exists():
             memory.setdefault(s["game"], {}).setdefault(s["variant"], []).append(
@@ -247,7 +264,7 @@ def report(args) -> None:
         entry = {"game": game, "variant": alg, "seeds": [s["seed"] for s in ss],
                  "last": [p["last_mean"] for p in pr], "last_k": [p["last_k"] for p in pr],
                  "terciles": [[t["mean"] for t in p["terciles"]] for p in pr],
-                 "episodes": [p["episodes"] for p in pr], "frames": [s["frames"] for s in ss],
+                 "episodes": [p["episodes"] for p in pr], "frames": [frames_reached(s) for s in ss],
                  "wall_s": [s["wall_time_s"] for s in ss],
                  "steps_per_s": [s["steps"] / s["wall_time_s"] if s["wall_time_s"] else None for s in ss],
                  "complete": [s["complete"] for s in ss]}
@@ -260,7 +277,9 @@ def report(args) -> None:
             pcell = "-"
         table.append(entry)
         terc = list(zip(*entry["terciles"])) if entry["terciles"] else [[], [], []]
-        lines.append(f"| {game} | {alg} | {len(ss)} | {_ci(entry['last'])}{star} | {_ms(list(terc[0]))} | "
+        unfinished = sum(not done for done in entry["complete"])
+        seeds = f"{len(ss)} ({unfinished} unfinished)" if unfinished else f"{len(ss)}"
+        lines.append(f"| {game} | {alg} | {seeds} | {_ci(entry['last'])}{star} | {_ms(list(terc[0]))} | "
                      f"{_ms(list(terc[1]))} | {_ms(list(terc[2]))} | {_ms(entry['episodes'])} | "
                      f"{_ms(entry['frames'])} | {_ms([w / 60 for w in entry['wall_s']])} | "
                      f"{_ms(entry['steps_per_s'])} | {pcell} |")
@@ -287,19 +306,18 @@ def report(args) -> None:
         fig, ax = plt.subplots(figsize=(7, 4))
         grid = np.linspace(0, args.frames, 101)
         for alg, runs in by_alg.items():
-            ys = []
-            for fr, ret in runs:
-                if len(fr) >= 1:
-                    ys.append(np.interp(grid, fr, ret, left=np.nan, right=ret[-1]))
+            ys = [curve_on_grid(grid, fr, ret, reached) for fr, ret, reached, _ in runs if len(fr) >= 1]
             if not ys:
                 continue
             y = np.array(ys)
+            unfinished = sum(not done for *_, done in runs)
+            label = f"{alg} ({len(ys)} seeds" + (f", {unfinished} unfinished)" if unfinished else ")")
             with warnings.catch_warnings():   # grid points before any run's first episode end are all NaN
                 warnings.simplefilter("ignore", RuntimeWarning)
-                ax.plot(grid, np.nanmean(y, 0), color=colour[alg], label=f"{alg} ({len(ys)} seeds)")
+                ax.plot(grid, np.nanmean(y, 0), color=colour[alg], label=label)
                 if len(ys) > 1:
                     ax.fill_between(grid, np.nanmin(y, 0), np.nanmax(y, 0), color=colour[alg], alpha=0.2)
-            for fr, ret in runs:
+            for fr, ret, *_ in runs:
                 ax.scatter(fr, ret, s=6, alpha=0.5, color=colour[alg])
         ax.set_xlabel("frames (skipped ones counted)")
         ax.set_ylabel("training episode return")

@@ -3,6 +3,8 @@ runs of --out and the runs joined with --include alike (the docs' report command
 from per-run files that hold more)."""
 import json
 
+import numpy as np
+
 from scaffolding import load_benchmark
 
 
@@ -34,3 +36,27 @@ def test_games_and_variants_select_the_rows_of_included_runs(tmp_path):
                 "--variants", "comper", "dqn", "dqn_n10", "--variant", "dqn_n10=dqn:n_step=10",
                 "--include", str(include)])
     assert len(json.loads((everything / "table.json").read_text())) == 6
+
+
+def test_an_unfinished_runs_curve_stops_where_the_run_stopped_and_its_row_says_so(tmp_path):
+    """A report made while a run is under way (a long run continued over sessions) drew the run's last episode
+    as a flat line up to the whole budget, as if it had been played."""
+    bench = load_benchmark("atari_bench")
+    grid = np.linspace(0, 400_000, 101)
+    y = bench.curve_on_grid(grid, [10_000, 100_000, 150_000], [50.0, 150.0, 250.0], reached=154_000)
+    assert np.isnan(y[grid < 10_000]).all() and np.isnan(y[grid > 154_000]).all()
+    assert y[grid == 100_000] == 150.0 and (y[(grid >= 150_000) & (grid <= 154_000)] == 250.0).all()
+    # a complete run holds its last episode up to the frames it reached, the episode under way at the end
+    done = bench.curve_on_grid(grid, [10_000, 396_000], [50.0, 300.0], reached=403_259)
+    assert done[-1] == 300.0
+
+    runs = [_record("Seaquest", "dqn_n10", 1, [float(k) for k in range(30)]),
+            {**_record("Seaquest", "comper_n10", 1, [float(k) for k in range(12)]), "complete": False}]
+    include = tmp_path / "runs.json"
+    include.write_text(json.dumps(runs))
+    out = tmp_path / "report"
+    bench.main(["--out", str(out), "--report-only", "--games", "Seaquest", "--variants", "comper_n10", "dqn_n10",
+                "--variant", "comper_n10=comper:n_step=10", "--variant", "dqn_n10=dqn:n_step=10",
+                "--include", str(include)])
+    table = (out / "table.md").read_text()
+    assert "| Seaquest | comper_n10 | 1 (1 unfinished) |" in table and "| Seaquest | dqn_n10 | 1 |" in table
