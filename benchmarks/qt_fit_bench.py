@@ -23,6 +23,16 @@ round by round so that a load that comes and goes hits both alike:
 
 Each row: median seconds per round over --rounds rounds; the ratio is before over the variant. All variants start from
 the same network and see the same data, and their predictions after the rounds must be equal.
+
+``--from-transitions`` times the round as the QT trainer runs it instead (reduction_predictor on a lease of uint8
+frames: the keys are built from the transitions inside the round), for two variants of the current code, eager:
+
+  whole         the keys built by a cast, a scaled copy and a concatenation (three new arrays), the whole scaled input
+                built at once for fit and a new one per prediction chunk (QTModel.kept_buffers False)
+  kept          the keys written in place into a kept buffer, each mini-batch scaled when drawn, predictions scaled
+                into a kept buffer (the default)
+
+    python benchmarks/qt_fit_bench.py --from-transitions --sets 3300   # a 10-step data_efficient reduction
 """
 from __future__ import annotations
 
@@ -59,14 +69,62 @@ def build(variant: str, key_dim: int) -> QTModel:
     return m
 
 
+def _keys_before(t, frame_scale=1.0 / 255.0):
+    """transition_keys as it was: each part cast (and scaled) into a new array, then concatenated."""
+    def part(obs):
+        flat = obs.reshape(len(t), -1)
+        return flat.astype(np.float32) * np.float32(frame_scale) if flat.dtype == np.uint8 else flat
+    a = np.asarray(t.actions).reshape(len(t), -1).astype(np.float32)
+    return np.concatenate([part(t.states), a, np.asarray(t.rewards, np.float32)[:, None], part(t.next_states)], axis=1)
+
+
+def from_transitions(args) -> int:
+    from types import SimpleNamespace
+
+    from comper_msgs_py.arrays import Transitions
+    rng = np.random.default_rng(0)
+    m, shape = args.sets, (args.sets, args.frames, 84, 84)
+    reps = Transitions(rng.integers(0, 256, size=shape, dtype=np.uint8), rng.integers(0, 18, size=m),
+                       np.sign(rng.normal(size=m)).astype(np.float32), rng.integers(0, 256, size=shape, dtype=np.uint8),
+                       np.zeros(m, bool), np.zeros(m, bool))
+    lengths = rng.integers(1, 12, size=m)
+    lease = SimpleNamespace(representatives=reps, label_history=rng.normal(size=int(lengths.sum())).astype(np.float32),
+                            history_lengths=lengths, counts=lengths.copy())
+    key_dim = 2 * args.frames * 84 * 84 + 2
+    models = {v: QTModel(QTConfig(), key_dim=key_dim) for v in ("whole", "kept")}
+    models["whole"].kept_buffers = False
+    key_fn = {"whole": _keys_before, "kept": qt_mod.default_key_fn}
+    times: dict[str, list[float]] = {v: [] for v in models}
+    preds = {}
+    for r in range(args.rounds):
+        for v, model in models.items():
+            t = time.perf_counter()
+            preds[v] = qt_mod.reduction_predictor(model, key_fn=key_fn[v])(lease)
+            times[v].append(time.perf_counter() - t)
+        print(f"round {r + 1}: " + ", ".join(f"{v} {times[v][-1]:.2f} s" for v in models), flush=True)
+    same = np.array_equal(preds["whole"], preds["kept"])
+    med = {v: statistics.median(t) for v, t in times.items()}
+    print(f"\n{m} sets of {args.frames}-frame transitions (key {key_dim} values), {args.rounds} rounds, 1 torch thread")
+    print("| variant | s per round (median) | whole / variant |\n|---|---|---|")
+    for v in models:
+        print(f"| {v} | {med[v]:.2f} | {med['whole'] / med[v]:.2f}x |")
+    print(f"predictions of the last round equal: {same}; kept buffers "
+          f"{(models['kept'].key_rows.nbytes + models['kept']._input_rows.nbytes) / 1e6:.0f} MB")
+    return 0 if same else 1
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sets", type=int, default=1784, help="sets per round (1,784: a data_efficient Freeway reduction)")
     ap.add_argument("--frames", type=int, default=4, help="frames per observation (key: 2 x frames x 7,056 + 2)")
     ap.add_argument("--rounds", type=int, default=3, help="training rounds per variant")
+    ap.add_argument("--from-transitions", action="store_true",
+                    help="time the trainer's round from uint8 transitions: whole inputs against kept buffers")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
+    if args.from_transitions:
+        return from_transitions(args)
     key_dim = 2 * args.frames * 84 * 84 + 2
     rng = np.random.default_rng(0)
     keys = rng.integers(0, 256, size=(args.sets, key_dim), dtype=np.uint8).astype(np.float32) / 255.0

@@ -145,6 +145,41 @@ def test_reduction_predictor_on_atari_like_lease():
     assert reduction_predictor(qt)(empty).shape == (0,)
 
 
+def _atari_lease(m, frames, seed):
+    rng = np.random.default_rng(seed)
+    shape = (m, frames, 84, 84)
+    reps = Transitions(states=rng.integers(0, 256, size=shape, dtype=np.uint8),
+                       actions=rng.integers(0, 18, size=m).astype(np.int64),
+                       rewards=np.sign(rng.normal(size=m)).astype(np.float32),
+                       next_states=rng.integers(0, 256, size=shape, dtype=np.uint8),
+                       terminated=np.zeros(m, bool), truncated=np.zeros(m, bool))
+    lengths = rng.integers(1, 5, size=m).astype(np.uint32)
+    hist = rng.normal(1, 0.5, size=int(lengths.sum())).astype(np.float32)
+    return SimpleNamespace(representatives=reps, label_history=hist, history_lengths=lengths, counts=lengths.copy())
+
+
+def test_kept_buffers_give_the_whole_input_paths_values_and_are_reused():
+    """QT's round with kept buffers (keys written into one kept array, each mini-batch scaled when drawn,
+    predictions scaled into a kept array) against the whole-input path it replaces: equal parameters and
+    predictions bit for bit over three rounds of different sizes, and the buffers are mapped once."""
+    kept, whole = QTModel(QTConfig(qt_batch_size=8)), QTModel(QTConfig(qt_batch_size=8))
+    whole.kept_buffers = False
+    for r, m in enumerate((37, 50, 20)):
+        lease = _atari_lease(m, 2, r)
+        got, ref = reduction_predictor(kept)(lease), reduction_predictor(whole)(lease)
+        assert np.array_equal(got, ref), r
+        assert all(torch.equal(a, b) for a, b in zip(kept.net.parameters(), whole.net.parameters()))
+        assert np.array_equal(kept.input_mean, whole.input_mean) and np.array_equal(kept.input_std, whole.input_std)
+    key_dim = 2 * 2 * 84 * 84 + 2
+    assert kept.key_rows.nbytes == 50 * key_dim * 4 and kept._input_rows.nbytes == 50 * key_dim * 4
+    assert whole.key_rows.nbytes == 0 and whole._input_rows.nbytes == 0
+    keys = default_key_fn(_atari_lease(30, 2, 9).representatives)
+    assert np.array_equal(kept.predict(keys), whole.predict(keys))
+    # another caller while the buffer is held gets its own array (same values)
+    with kept.key_rows.rows(10, 4) as a, kept.key_rows.rows(10, 4) as b:
+        assert not np.shares_memory(a, b)
+
+
 def test_rejects_bad_input():
     qt = QTModel(QTConfig(), key_dim=3)
     with pytest.raises(ValueError):

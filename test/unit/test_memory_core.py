@@ -44,6 +44,16 @@ def test_key_layout():
     np.testing.assert_array_equal(k[:, 7056], [3, 7])
     np.testing.assert_array_equal(k[:, 7057], [1, -1])
     assert k[:, :7056].max() <= 1.0 and k[:, 7058:].max() <= 1.0
+    # written in place: the same bits as the cast, scaled copy and concatenation it replaces, also into `out`
+    np.testing.assert_array_equal(k[:, 7058:], t.next_states.reshape(2, -1).astype(np.float32) * np.float32(1 / 255))
+    out = np.full((2, 14114), np.nan, np.float32)
+    assert transition_keys(t, out=out) is out and np.array_equal(out, k)
+    with pytest.raises(ValueError, match="out must be"):
+        transition_keys(t, out=np.empty((2, 14114), np.float64))
+    f = make(rng, 3, obs=5)
+    f = Transitions(f.states.astype(np.float64), f.actions, f.rewards, f.next_states, f.terminated, f.truncated)
+    np.testing.assert_array_equal(transition_keys(f), np.concatenate(
+        [f.states.astype(np.float32), f.actions, f.rewards[:, None], f.next_states], axis=1))
 
 
 def test_tm_rtm_reduce_and_sample():

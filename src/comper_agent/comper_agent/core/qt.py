@@ -35,13 +35,15 @@ not depend on which other sets share the batch (up to float rounding of batched 
 """
 from __future__ import annotations
 
+import contextlib
+import threading
 from typing import Callable
 
 import numpy as np
 import torch
 from torch import nn
 
-from comper_memory.core.keys import transition_keys
+from comper_memory.core.keys import key_size_of, transition_keys
 from comper_msgs_py.params import config_to_dict
 
 from .config import QTConfig, qt_config_for
@@ -88,6 +90,42 @@ def history_windows(label_history: np.ndarray, history_lengths: np.ndarray, leng
     present = idx >= start[:, None]
     labels = np.where(present, hist[np.clip(idx, 0, max(hist.size - 1, 0))] if hist.size else 0.0, 0.0)
     return labels.astype(np.float32), present
+
+
+class _RowBuffer:
+    """A kept float32 [rows, dim] scratch array, grown to the most rows asked for and reused: QT's round
+    builds 3,300 sets of 4-frame keys (745 MB) and their scaled inputs each time, and on a machine whose free
+    memory is page cache, fresh pages of that size cost seconds to map (the kernel reclaims cache for them).
+    ``rows(n, dim)`` is a context manager giving a C-contiguous [n, dim] view; while one caller holds it, another
+    gets a new array (correct, just not reused)."""
+
+    def __init__(self):
+        self._a: np.ndarray | None = None
+        self._lock = threading.Lock()
+
+    @contextlib.contextmanager
+    def rows(self, n: int, dim: int):
+        if not self._lock.acquire(blocking=False):
+            yield np.empty((n, dim), np.float32)
+            return
+        try:
+            a = self._a
+            if a is None or a.shape[1] != dim or a.shape[0] < n:
+                self._a = a = None                  # let the old one go before the new one is mapped
+                a = self._a = np.empty((n, dim), np.float32)
+            yield a[:n]
+        finally:
+            self._lock.release()
+
+    @property
+    def nbytes(self) -> int:
+        return 0 if self._a is None else int(self._a.nbytes)
+
+    def __getstate__(self):          # scratch space: a copy (deepcopy, pickle) starts empty
+        return {}
+
+    def __setstate__(self, state):
+        self.__init__()
 
 
 def _kept_like(buf: torch.Tensor | None, t: torch.Tensor) -> torch.Tensor:
@@ -312,6 +350,11 @@ class QTModel:
     ``key_dim`` may be None: the network is then built on the first fit/predict.
     """
 
+    #: L = 1: fit scales each mini-batch's inputs when it is drawn, predict scales into a kept buffer, and
+    #: reduction_predictor builds the keys into one (equal values, tested). False: the whole scaled input is
+    #: built at once and each round's arrays are new (the earlier way; qt_fit_bench.py's baseline)
+    kept_buffers = True
+
     def __init__(self, config: QTConfig | None = None, key_dim: int | None = None):
         self.config = config or QTConfig()
         self.device = torch.device(self.config.qt_device)
@@ -322,6 +365,8 @@ class QTModel:
         self.train_loss = float("nan")   # mean loss of the last round (scaled units)
         self.train_sets = 0
         self._gen = torch.Generator().manual_seed(self.config.qt_seed + 1)
+        self.key_rows = _RowBuffer()     # reduction_predictor's keys
+        self._input_rows = _RowBuffer()  # predict's scaled inputs (L = 1, CPU)
         if key_dim is not None:
             self._build(int(key_dim))
 
@@ -364,10 +409,7 @@ class QTModel:
     def _inputs(self, keys: np.ndarray, label_history, history_lengths, *, exclude_newest: bool
                 ) -> torch.Tensor:
         """Scaled input sequences [M, L, in_dim] on the model's device."""
-        k = torch.from_numpy(np.ascontiguousarray(keys, dtype=np.float32)).to(self.device)
-        mean = torch.from_numpy(self.input_mean).to(self.device)
-        std = torch.from_numpy(self.input_std).to(self.device)
-        k = (k - mean) / std
+        k = self._scaled(torch.from_numpy(np.ascontiguousarray(keys, dtype=np.float32)))
         L = self.sequence_length
         if L == 1:
             return k.unsqueeze(1)
@@ -383,6 +425,13 @@ class QTModel:
         pres = torch.from_numpy(present.astype(np.float32)).to(self.device)
         return torch.cat([k.unsqueeze(1).expand(m, L, self.key_dim), lab.unsqueeze(-1),
                           pres.unsqueeze(-1)], dim=-1)
+
+    def _scaled(self, k: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+        """(k - input_mean) / input_std on the model's device, as a new tensor or into ``out`` (k is left as it
+        is): one write, the division in place, the same values as the two-step expression."""
+        k = k.to(self.device)
+        x = torch.sub(k, torch.from_numpy(self.input_mean).to(self.device), out=out)
+        return x.div_(torch.from_numpy(self.input_std).to(self.device))
 
     def _update_scaler(self, keys: np.ndarray, targets: np.ndarray) -> None:
         refit = self.config.qt_scaler == "refit"
@@ -407,10 +456,16 @@ class QTModel:
         if lengths.shape != (m,):
             raise ValueError(f"history_lengths must have shape ({m},), got {lengths.shape}")
         targets = newest_labels(label_history, lengths)
-        if not (np.isfinite(keys).all() and np.isfinite(targets).all()):
+        if not (all(np.isfinite(keys[i:i + 256]).all() for i in range(0, m, 256)) and np.isfinite(targets).all()):
             raise ValueError("QT training data holds NaN or Inf")
         self._update_scaler(keys, targets)
-        x = self._inputs(keys, label_history, lengths, exclude_newest=True)
+        if self.sequence_length == 1 and self.kept_buffers:
+            # each mini-batch's inputs are scaled when it is drawn (the same values as rows of the whole scaled
+            # input, which for 3,300 sets of 4-frame keys is 745 MB written afresh at every round)
+            raw = torch.from_numpy(keys)
+            x = None
+        else:
+            x = self._inputs(keys, label_history, lengths, exclude_newest=True)
         y = torch.from_numpy((targets - self.label_mean) / self.label_std).float().to(self.device)
         epochs = int(epochs or self.config.qt_epochs)
         bs = int(batch_size or self.config.qt_batch_size)
@@ -423,7 +478,8 @@ class QTModel:
             perm = torch.randperm(m, generator=self._gen).to(self.device)
             for i in range(0, m, bs):
                 idx = perm[i:i + bs]
-                loss = torch.mean((net(x[idx]) - y[idx]) ** 2)
+                xb = self._scaled(raw[idx.cpu()]).unsqueeze(1) if x is None else x[idx]
+                loss = torch.mean((net(xb) - y[idx]) ** 2)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 if self.config.qt_grad_clip > 0:
@@ -462,6 +518,11 @@ class QTModel:
                 b = int(off[sl.stop - 1] + lengths[sl.stop - 1])
                 x = self._inputs(keys[sl], np.asarray(label_history)[a:b], lengths[sl],
                                  exclude_newest=False)
+            elif self.sequence_length == 1 and self.device.type == "cpu" and self.kept_buffers:
+                with self._input_rows.rows(sl.stop - sl.start, keys.shape[1]) as buf:
+                    x = self._scaled(torch.from_numpy(keys[sl]), out=torch.from_numpy(buf))
+                    out.append(self.net(x.unsqueeze(1)))
+                continue
             else:
                 x = self._inputs(keys[sl], None, None, exclude_newest=False)
             out.append(self.net(x))
@@ -587,6 +648,18 @@ def _plain(d: dict) -> dict:
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
 
 
+@contextlib.contextmanager
+def _round_keys(qt: QTModel, reps, key_fn: Callable):
+    """The keys of a round's representatives: the default key builder writes them into the model's kept buffer."""
+    if key_fn is not transition_keys or not qt.kept_buffers:
+        yield key_fn(reps)
+        return
+    n = len(reps)
+    dim = key_size_of(reps.states.shape[1:], np.asarray(reps.actions).reshape(n, -1).shape[1])
+    with qt.key_rows.rows(n, dim) as buf:
+        yield transition_keys(reps, out=buf)
+
+
 def reduction_predictor(qt: QTModel, epochs: int | None = None,
                         key_fn: Callable = default_key_fn,
                         batch_size: int | None = None) -> Callable:
@@ -601,10 +674,10 @@ def reduction_predictor(qt: QTModel, epochs: int | None = None,
         reps = lease.representatives
         if len(reps) == 0:
             return np.zeros(0, np.float32)
-        keys = key_fn(reps)
         hist = np.asarray(lease.label_history, dtype=np.float32)
         lengths = np.asarray(lease.history_lengths, dtype=np.int64)
-        qt.fit(keys, hist, lengths, epochs=epochs, batch_size=batch_size)
-        return qt.predict(keys, hist, lengths)
+        with _round_keys(qt, reps, key_fn) as keys:
+            qt.fit(keys, hist, lengths, epochs=epochs, batch_size=batch_size)
+            return qt.predict(keys, hist, lengths)
 
     return predict

@@ -10,25 +10,43 @@ __all__ = ["transition_keys", "key_size_of", "exact_sq_dist", "DEFAULT_FRAME_SCA
 DEFAULT_FRAME_SCALE = 1.0 / 255.0
 
 
-def _obs_part(obs: np.ndarray, n: int, frame_scale: float) -> np.ndarray:
+def _put_obs(obs: np.ndarray, n: int, frame_scale: float, out: np.ndarray) -> None:
     flat = obs.reshape(n, -1)
-    if flat.dtype == np.uint8:
-        return flat.astype(np.float32) * np.float32(frame_scale)
-    return flat.astype(np.float32, copy=False)
+    if flat.dtype == np.uint8:      # uint8 -> float32 is exact, then one float32 product, written in place
+        np.multiply(flat, np.float32(frame_scale), out=out, dtype=np.float32)
+    else:
+        out[...] = flat
 
 
-def transition_keys(t: Transitions, frame_scale: float = DEFAULT_FRAME_SCALE) -> np.ndarray:
+def transition_keys(t: Transitions, frame_scale: float = DEFAULT_FRAME_SCALE,
+                    out: np.ndarray | None = None) -> np.ndarray:
     """Keys [N, key_dim] float32 = concat(s.flatten, a, r, s'.flatten).
 
     uint8 observations (Atari frames) are scaled once by ``frame_scale`` (1/255 -> [0, 1]);
-    float observations are used raw. Discrete actions ([N]) contribute one value each.
+    float observations are used raw (cast to float32). Discrete actions ([N]) contribute one value each.
     Atari single frame 84x84: 7056 + 1 + 1 + 7056 = 14114.
-    """
+
+    Each part is written straight into the result (one allocation: 3,300 sets of 4-frame keys are 745 MB,
+    and a cast, a scaled copy and a concatenation made three). out: a float32 C-contiguous [N, key_dim]
+    array to fill and return instead of a new one (a kept buffer: no fresh pages to map)."""
     n = len(t)
-    a = np.asarray(t.actions).reshape(n, -1).astype(np.float32, copy=False)
-    r = np.asarray(t.rewards).reshape(n, 1).astype(np.float32, copy=False)
-    return np.concatenate([_obs_part(t.states, n, frame_scale), a, r,
-                           _obs_part(t.next_states, n, frame_scale)], axis=1)
+    a = np.asarray(t.actions).reshape(n, -1)
+    s_dim = int(np.prod(t.states.shape[1:], dtype=np.int64))
+    a_dim = a.shape[1]
+    dim = 2 * s_dim + a_dim + 1
+    if t.next_states.reshape(n, -1).shape[1] != s_dim:
+        raise ValueError(f"states have {s_dim} values per row, next_states "
+                         f"{t.next_states.reshape(n, -1).shape[1]}")
+    if out is None:
+        out = np.empty((n, dim), np.float32)
+    elif out.shape != (n, dim) or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float32 array of shape {(n, dim)}, got "
+                         f"{out.dtype} {out.shape}")
+    _put_obs(t.states, n, frame_scale, out[:, :s_dim])
+    out[:, s_dim:s_dim + a_dim] = a
+    out[:, s_dim + a_dim] = np.asarray(t.rewards).reshape(n)
+    _put_obs(t.next_states, n, frame_scale, out[:, s_dim + a_dim + 1:])
+    return out
 
 
 def key_size_of(obs_shape: tuple[int, ...], action_dim: int) -> int:
