@@ -200,7 +200,7 @@ def test_snapshot_paths_are_confined_and_services_can_be_turned_off(launch, clie
 
 def test_a_snapshot_call_sent_again_with_its_request_id_is_carried_out_once(launch, client_of, tmp_path):
     """A save or restore whose answer was lost is sent again with its request id (MemoryClient does so after
-    resend_s): the node answers from the first call's answer and neither saves nor restores twice."""
+    resend_s): the node answers from the first call's answer, a refusal too, and neither saves nor restores twice."""
     storage = tmp_path / "storage"
     proc, name = start(launch, "snapresend", "-p", f"storage_dir:={storage}", "-p", "snapshot_every:=0")
     memory = client_of(name)
@@ -225,10 +225,14 @@ def test_a_snapshot_call_sent_again_with_its_request_id_is_carried_out_once(laun
     assert memory.stats()["identities"] == after          # the store after the restore is kept
     restore.request_id = 79                               # a new id is a new restore
     assert not memory._call(memory._snapshot, restore).repeated and memory.stats()["identities"] == before
-    # a refused call is not remembered: the same id is judged again once the snapshot exists
+    # a refusal is remembered too: copies of a call queued behind it are not carried out (a failed long save was
+    # carried out again for each re-send); the same request with a new id is judged afresh
     late = Snapshot.Request(op=Snapshot.Request.OP_RESTORE, path="c", request_id=80)
     refused(proc, lambda: memory._call(memory._snapshot, late), "not a snapshot directory")
     memory.snapshot("c")
+    again = memory._call(memory._snapshot, late, check=False)
+    assert again.repeated and not again.success and "not a snapshot directory" in again.message
+    late.request_id = 81
     assert not memory._call(memory._snapshot, late).repeated
     assert proc.stop() == 0
 

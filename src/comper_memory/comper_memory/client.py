@@ -134,8 +134,8 @@ class MemoryClient(ServiceClient):
     is sent again (0 = never; then one lost answer costs the whole ``timeout``; a first call right after the
     node comes up can lose its answer while discovery completes). Safe: every store carries a fresh request
     id, and the node answers a re-sent one with the first one's answer without applying it twice
-    (``resend_window``); a snapshot save or restore carries a request id too and is answered once (the node
-    remembers its last 64); a re-sent sample is just another draw, a re-sent stats request another read.
+    (``resend_window``); a snapshot save or restore carries a request id too and is carried out once (the node
+    remembers its last 64 answers); a re-sent sample is just another draw, a re-sent stats request another read.
     ``resent`` counts them.
     """
 

@@ -448,10 +448,12 @@ class MemoryNode(Node):
             return path, "restored"
         raise _Refused(f"snapshot: unknown op {request.op} (OP_SAVE=0, OP_RESTORE=1)")
 
-    #: how many successful snapshot answers the node remembers by request id (Snapshot.srv)
+    #: how many snapshot answers the node remembers by request id (Snapshot.srv)
     SNAPSHOT_ANSWERS = 64
 
     def _on_snapshot(self, request: Snapshot.Request, response: Snapshot.Response):
+        """A request id seen before gets the first call's answer, a refusal included: a client re-sends a long
+        save every resend_s, and those copies queue behind it; each was carried out again after a failed save."""
         rid = int(request.request_id)
         with self._snapshot_lock:
             remembered = self._snapshot_answers.get(rid) if rid else None
@@ -460,17 +462,18 @@ class MemoryNode(Node):
                     with self._open():
                         path, what = self._snapshot(request)
                 except Exception as exc:
-                    return self._refuse(response, "snapshot", exc)
-                remembered = (path, int(self._stats()["wal_sequence"]), f"{what} {path}")
+                    self._refuse(response, "snapshot", exc)
+                    remembered = (False, "", 0, response.message)
+                else:
+                    remembered = (True, path, int(self._stats()["wal_sequence"]), f"{what} {path}")
+                    self.get_logger().info(f"snapshot {what}: {path} (wal_sequence {remembered[2]})")
                 if rid:
                     self._snapshot_answers[rid] = remembered
                     while len(self._snapshot_answers) > self.SNAPSHOT_ANSWERS:
                         self._snapshot_answers.popitem(last=False)
-                self.get_logger().info(f"snapshot {what}: {path} (wal_sequence {remembered[1]})")
             else:
                 response.repeated = True
-        response.success = True
-        response.path, response.wal_sequence, response.message = remembered
+        response.success, response.path, response.wal_sequence, response.message = remembered
         return response
 
     # --- shutdown -----------------------------------------------------------------------------
