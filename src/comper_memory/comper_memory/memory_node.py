@@ -197,7 +197,7 @@ class MemoryNode(Node):
         # snapshot answers by request id (a re-sent save or restore is answered, not carried out again);
         # the lock also keeps a re-send from running beside its first call under a multi-threaded executor
         self._snapshot_lock = threading.Lock()
-        self._snapshot_answers: collections.OrderedDict[int, tuple[str, int, str]] = collections.OrderedDict()
+        self._snapshot_answers: collections.OrderedDict[int, tuple[bool, str, int, str]] = collections.OrderedDict()
         self._group = ReentrantCallbackGroup()
         g = self._group
         self._stats_pub = self.create_publisher(MemoryStats, "~/stats", STATS_QOS, callback_group=g)
