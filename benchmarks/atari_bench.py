@@ -170,7 +170,9 @@ def _ci(values: list[float]) -> str:
 def run_record(sd: Path) -> dict:
     """The per-run figures the report needs (what runs.json keeps)."""
     s = json.loads(sd.read_text())
-    eps = MetricsLog.read(sd.parent / "metrics.jsonl", "episode", missing_ok=True)
+    from learning_bench import resumed_episodes
+    eps = resumed_episodes([e for e in MetricsLog.read(sd.parent / "metrics.jsonl", "episode", missing_ok=True)
+                            if e.get("source", "train") == "train"])
     return {"run_id": sd.parent.name, "game": s["env_id"].split("/")[-1].replace("-v5", ""),
             "variant": sd.parent.name.rsplit("-", 2)[0],     # the run id is <variant>-<game>-s<seed>
             "seed": s["seed"], "protocol": s["protocol"], "frames": s["frames"],

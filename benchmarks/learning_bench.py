@@ -181,6 +181,19 @@ def resumed_evals(evals: list[dict]) -> list[dict]:
     return out
 
 
+def resumed_episodes(episodes: list[dict]) -> list[dict]:
+    """A run's episode records of the timeline it went on with: a session resumed from a checkpoint counts episodes
+    again from the checkpoint's count, so records the killed session had logged with that index or a later one
+    belong to steps that were played again, and are dropped (an episode's end step cannot tell them apart: the
+    replayed episodes end later than the dropped ones)."""
+    out: list[dict] = []
+    for e in episodes:
+        while out and out[-1]["episode"] >= e["episode"]:
+            out.pop()
+        out.append(e)
+    return out
+
+
 def run_timers(records: list[dict]) -> dict | None:
     """A run's time split over its sessions (one 'timers' record each; a session killed outright leaves none, and
     its time is not counted): seconds, steps and phases summed, steps/s over the sum; other fields the last's."""

@@ -60,3 +60,25 @@ def test_an_unfinished_runs_curve_stops_where_the_run_stopped_and_its_row_says_s
                 "--include", str(include)])
     table = (out / "table.md").read_text()
     assert "| Seaquest | comper_n10 | 1 (1 unfinished) |" in table and "| Seaquest | dqn_n10 | 1 |" in table
+
+
+def test_episodes_of_steps_played_again_after_a_resume_are_dropped(tmp_path):
+    """The 400,000-frame COMPER run: its checkpoint at step 7,500 held 13 episodes; the session stopped later had
+    logged episodes 13 and 14 (ending at steps 7,613 and 7,987), and the resumed session played steps 7,500+ again
+    and logged its own episodes 13 and 14 (ending at 8,221 and 8,755). Only the second pair is the run's."""
+    bench = load_benchmark("atari_bench")
+    run = tmp_path / "runs" / "comper_n10-Seaquest-s1"
+    run.mkdir(parents=True)
+    logged = [(k, 500 * (k + 1), float(k)) for k in range(13)]
+    logged += [(13, 7613, 300.0), (14, 7987, 60.0), (13, 8221, 240.0), (14, 8755, 160.0), (15, 9000, 10.0)]
+    with open(run / "metrics.jsonl", "w") as f:
+        for k, step, ret in logged:
+            f.write(json.dumps({"kind": "episode", "source": "train", "episode": k, "step": step,
+                                "frames": 5 * step, "ret": ret}) + "\n")
+        f.write(json.dumps({"kind": "progress", "step": 9000}) + "\n")
+    (run / "summary.json").write_text(json.dumps({
+        "env_id": "ALE/Seaquest-v5", "seed": 1, "protocol": {}, "frames": 45000, "steps": 9000,
+        "wall_time_s": 100.0, "complete": False}))
+    rec = bench.run_record(run / "summary.json")
+    assert rec["episode_returns"] == [float(k) for k in range(13)] + [240.0, 160.0, 10.0]
+    assert rec["episode_frames"][-3:] == [41105, 43775, 45000]
