@@ -69,6 +69,14 @@ def build(variant: str, key_dim: int) -> QTModel:
     return m
 
 
+def print_table(title: str, times: dict[str, list[float]], base: str) -> None:
+    """Median seconds per round of each variant and the ratio base / variant, as a markdown table."""
+    med = {v: statistics.median(t) for v, t in times.items()}
+    print(f"\n{title}\n| variant | s per round (median) | {base} / variant |\n|---|---|---|")
+    for v in times:
+        print(f"| {v} | {med[v]:.2f} | {med[base] / med[v]:.2f}x |")
+
+
 def _keys_before(t, frame_scale=1.0 / 255.0):
     """transition_keys as it was: each part cast (and scaled) into a new array, then concatenated."""
     def part(obs):
@@ -103,11 +111,8 @@ def from_transitions(args) -> int:
             times[v].append(time.perf_counter() - t)
         print(f"round {r + 1}: " + ", ".join(f"{v} {times[v][-1]:.2f} s" for v in models), flush=True)
     same = np.array_equal(preds["whole"], preds["kept"])
-    med = {v: statistics.median(t) for v, t in times.items()}
-    print(f"\n{m} sets of {args.frames}-frame transitions (key {key_dim} values), {args.rounds} rounds, 1 torch thread")
-    print("| variant | s per round (median) | whole / variant |\n|---|---|---|")
-    for v in models:
-        print(f"| {v} | {med[v]:.2f} | {med['whole'] / med[v]:.2f}x |")
+    print_table(f"{m} sets of {args.frames}-frame transitions (key {key_dim} values), {args.rounds} rounds, 1 torch "
+                "thread", times, "whole")
     print(f"predictions of the last round equal: {same}; kept buffers "
           f"{(models['kept'].key_rows.nbytes + models['kept']._input_rows.nbytes) / 1e6:.0f} MB")
     return 0 if same else 1
@@ -142,11 +147,7 @@ def main(argv=None) -> int:
     preds = {v: m.predict(keys, hist, lengths) for v, m in models.items()}
     same = all(np.array_equal(preds["before"], preds[v]) for v in ("sqrt_buffer", "now"))
     close = np.allclose(preds["compiled"], preds["now"], rtol=1e-3, atol=1e-3 * float(np.abs(preds["now"]).max()))
-    med = {v: statistics.median(t) for v, t in times.items()}
-    print(f"\n{args.sets} sets, key {key_dim} values, {args.rounds} rounds, 1 torch thread")
-    print("| variant | s per round (median) | before / variant |\n|---|---|---|")
-    for v in models:
-        print(f"| {v} | {med[v]:.2f} | {med['before'] / med[v]:.2f}x |")
+    print_table(f"{args.sets} sets, key {key_dim} values, {args.rounds} rounds, 1 torch thread", times, "before")
     print(f"predictions after the rounds equal (before, sqrt_buffer, now): {same}; compiled within 1e-3 of now: "
           f"{close} (max abs difference {float(np.abs(preds['compiled'] - preds['now']).max()):.2e}); "
           f"compile: {models['compiled'].optimizer.compile_report()}")
