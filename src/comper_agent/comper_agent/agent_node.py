@@ -71,6 +71,7 @@ class AgentNode(Node):
     QT_START_HINT = ""                       # extra arguments in the hint for starting a QT trainer
     PROFILES: dict = {}                      # profile -> {field: (value, source)} (core/config.py); {} = none
     TIMED_CALLS = ("sim", "memory", "qt", "memory_reduce")   # phases made of service calls
+    HAND_OVER_S = 3.0   # at the end, the longest wait for subscribers to acknowledge the last results
 
     uses_memory = False
     uses_qt = False
@@ -370,6 +371,10 @@ class AgentNode(Node):
     def shutdown(self) -> None:
         if getattr(self, "evaluation", None) is not None:
             self.evaluation.close()
+        topics = getattr(self, "topics", None)
+        if topics is not None and not topics.hand_over(self.HAND_OVER_S):
+            self.log.warning(f"a subscriber of ~/episodes, ~/evaluations or ~/transitions had not acknowledged "
+                             f"this run's last messages after {self.HAND_OVER_S:g} s; it may miss them")
         recording = getattr(self, "recording", None)
         if recording is not None:
             try:

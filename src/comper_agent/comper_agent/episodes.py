@@ -41,6 +41,25 @@ class LearnerTopics:
     def _stamp(self):
         return self.node.get_clock().now().to_msg()
 
+    def hand_over(self, timeout_s: float) -> bool:
+        """Before the node is destroyed: waits, at most ``timeout_s`` in all, until every matched
+        reliable subscriber of the three topics has acknowledged what was published (the last
+        evaluation and the final summary go out just before a finished run ends; destroying the
+        publisher first would drop whatever is still unacknowledged). True when all were."""
+        import time
+        from rclpy.duration import Duration
+        deadline = time.monotonic() + timeout_s
+        ok = True
+        for pub in (self.evaluations, self.episodes, self.transitions):
+            try:
+                if pub.get_subscription_count() == 0:
+                    continue
+                left = max(0.0, deadline - time.monotonic())
+                ok = pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))) and ok
+            except Exception:   # a destroyed publisher or a shut-down context: nothing to hand over
+                ok = False
+        return ok
+
     def transitions_wanted(self) -> bool:
         """Whether a training episode's transitions go out: publish_transitions and someone records
         or subscribes."""
