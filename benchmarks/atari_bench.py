@@ -224,6 +224,27 @@ def curve_on_grid(grid: np.ndarray, frames: list, returns: list, reached: float)
     return y
 
 
+def difference_lines(table: list[dict], baseline: str) -> tuple[list[str], list[dict]]:
+    """Markdown lines and records of each variant's last-10 (3*) mean minus `baseline`'s on the same game, with
+    the bootstrap 95% interval of the difference (each variant's seeds resampled on their own, as learning_bench's
+    --baseline): 'above' or 'below' only where the interval excludes 0."""
+    from learning_bench import difference
+    lines = [f"Difference to {baseline} (last 10 (3*): this variant's mean minus {baseline}'s on the same game, "
+             "bootstrap 95% interval with each variant's seeds resampled on their own; above / below only where it "
+             "excludes 0):", "", "| game | variant | seeds (this / baseline) | difference [95% CI] |", "|---|---|---|---|"]
+    ref = {e["game"]: e for e in table if e["variant"] == baseline}
+    records = []
+    for e in table:
+        base = ref.get(e["game"])
+        if base is None or e["variant"] == baseline:
+            continue
+        d = difference(e["last"], base["last"])
+        records.append({"game": e["game"], "variant": e["variant"], "baseline": baseline, **d})
+        lines.append(f"| {e['game']} | {e['variant']} | {d['n']} / {d['n_baseline']} | {d['diff']:+.1f} "
+                     f"[{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}] {d['verdict']} |")
+    return lines, records
+
+
 def report(args) -> None:
     out = Path(args.out)
     records = {}
@@ -291,6 +312,10 @@ def report(args) -> None:
     lines.append("last 10: mean over seeds [bootstrap 95% CI of that mean]; terciles and the rest: mean (std across "
                  "seeds); * = a run with fewer than 25 episodes reports its last 3 episodes (terciles: last 3 instead "
                  "of 5).")
+    if args.baseline:
+        diff_lines, differences = difference_lines(table, args.baseline)
+        lines += ["", *diff_lines]
+        (out / "differences.json").write_text(json.dumps(differences, indent=1))
     (out / "table.md").write_text("\n".join(lines) + "\n")
     (out / "table.json").write_text(json.dumps(table, indent=1))
     (out / "memory.json").write_text(json.dumps(memory, indent=1))
@@ -388,6 +413,9 @@ def main(argv=None) -> int:
                     help="atari_constant_actions.py's JSON: random-play and best-constant rows per game")
     ap.add_argument("--policy", nargs="+", default=[], metavar="POLICY_JSON",
                     help="atari_policy_check.py --json output(s): the policy column")
+    ap.add_argument("--baseline", default="", metavar="VARIANT",
+                    help="also a table of each variant's difference to this one per game, with its bootstrap "
+                         "95%% interval (differences.json)")
     args = ap.parse_args(argv)
     args.named = parse_variants(args.variant)
     bad = [v for v in args.variants if v not in VARIANTS and v not in args.named] + \
@@ -395,6 +423,8 @@ def main(argv=None) -> int:
     if bad:
         ap.error(f"unknown or unusable variant(s) {', '.join(bad)}: choose from {', '.join(VARIANTS)}, or define one "
                  "with --variant NAME=ALGORITHM:PARAM=VALUE (ALGORITHM one of those, NAME without '-')")
+    if args.baseline and args.baseline not in args.variants:
+        ap.error(f"--baseline {args.baseline}: not one of --variants ({', '.join(args.variants)})")
     Path(args.out).mkdir(parents=True, exist_ok=True)
     if not args.report_only:
         raise_on_sigterm()

@@ -82,3 +82,34 @@ def test_episodes_of_steps_played_again_after_a_resume_are_dropped(tmp_path):
     rec = bench.run_record(run / "summary.json")
     assert rec["episode_returns"] == [float(k) for k in range(13)] + [240.0, 160.0, 10.0]
     assert rec["episode_frames"][-3:] == [41105, 43775, 45000]
+
+
+def test_the_baseline_table_gives_each_variants_difference_with_its_interval(tmp_path):
+    """--baseline: per game, each variant's last-10 mean minus the baseline's, with learning_bench's independent
+    two-group bootstrap interval of the difference; above / below only where the interval excludes 0."""
+    bench = load_benchmark("atari_bench")
+    learning = load_benchmark("learning_bench")
+    last = {("comper_n10", "Asterix"): [330.0, 435.0, 395.0, 470.0, 355.0],
+            ("dqn_n10", "Asterix"): [290.0, 425.0, 315.0, 245.0, 320.0],
+            ("comper_n10", "Seaquest"): [210.0, 206.0, 162.0], ("dqn_n10", "Seaquest"): [122.0, 220.0, 178.0]}
+    include = tmp_path / "runs.json"   # 30 episodes each, all at the run's value: its last 10 mean is that value
+    include.write_text(json.dumps([_record(g, v, s, [x] * 30) for (v, g), xs in last.items()
+                                   for s, x in enumerate(xs)]))
+    out = tmp_path / "report"
+    assert bench.main(["--out", str(out), "--report-only", "--games", "Asterix", "Seaquest", "--variants",
+                       "comper_n10", "dqn_n10", "--variant", "comper_n10=comper:n_step=10", "--variant",
+                       "dqn_n10=dqn:n_step=10", "--include", str(include), "--baseline", "dqn_n10"]) == 0
+    diffs = {d["game"]: d for d in json.loads((out / "differences.json").read_text())}
+    assert set(diffs) == {"Asterix", "Seaquest"} and all(d["variant"] == "comper_n10" for d in diffs.values())
+    for game, d in diffs.items():
+        want = learning.difference(last[("comper_n10", game)], last[("dqn_n10", game)])
+        assert d["diff"] == want["diff"] and d["ci95"] == want["ci95"] and d["verdict"] == want["verdict"]
+    assert diffs["Asterix"]["diff"] == 78.0 and diffs["Asterix"]["verdict"] == "above"
+    assert diffs["Seaquest"]["verdict"] == "not separated"
+    assert "| Asterix | comper_n10 | 5 / 5 | +78.0 [" in (out / "table.md").read_text()
+    try:
+        bench.main(["--out", str(out), "--report-only", "--variants", "comper", "--baseline", "dqn"])
+    except SystemExit as exc:
+        assert exc.code == 2
+    else:
+        raise AssertionError("a baseline outside --variants must be refused")
