@@ -11,15 +11,12 @@ into the run's logs.
 """
 from __future__ import annotations
 
-import time
-
 import numpy as np
-from rclpy.duration import Duration
 
 from comper_msgs.msg import EpisodeSummary, EvaluationResult, TransitionBatch
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.convert import transitions_to_batch
-from comper_msgs_py.qos import RECORDED_QOS
+from comper_msgs_py.qos import RECORDED_QOS, wait_acknowledged
 
 __all__ = ["LearnerTopics", "TrainingEpisodes", "SUMMARY_QOS"]
 
@@ -49,17 +46,7 @@ class LearnerTopics:
         reliable subscriber of the three topics has acknowledged what was published (the last
         evaluation and the final summary go out just before a finished run ends; destroying the
         publisher first would drop whatever is still unacknowledged). True when all were."""
-        deadline = time.monotonic() + timeout_s
-        ok = True
-        for pub in (self.evaluations, self.episodes, self.transitions):
-            try:
-                if pub.get_subscription_count() == 0:
-                    continue
-                left = max(0.0, deadline - time.monotonic())
-                ok = pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))) and ok
-            except Exception:   # a destroyed publisher or a shut-down context: nothing to hand over
-                continue
-        return ok
+        return wait_acknowledged((self.evaluations, self.episodes, self.transitions), timeout_s)
 
     def transitions_wanted(self) -> bool:
         """Whether a training episode's transitions go out: publish_transitions and someone records

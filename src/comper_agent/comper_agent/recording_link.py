@@ -119,15 +119,11 @@ class RecordingLink:
         holds and closes the bag); an in-process recorder closes its bag and is destroyed."""
         proc, self.proc = self.proc, None
         if proc is not None:
-            from rclpy.duration import Duration
+            from comper_msgs_py.qos import wait_acknowledged
             topics = set(self.topics)
-            for node in publishing_nodes if proc.poll() is None else []:   # a dead recorder acknowledges nothing
-                for pub in node.publishers:
-                    if pub.topic_name in topics:
-                        try:
-                            pub.wait_for_all_acked(Duration(seconds=5.0))
-                        except Exception:   # a destroyed publisher or a shut-down context: nothing to wait for
-                            pass
+            nodes = publishing_nodes if proc.poll() is None else []   # a dead recorder acknowledges nothing
+            wait_acknowledged([pub for node in nodes for pub in node.publishers if pub.topic_name in topics], 5.0,
+                              each=True)
             proc.send_signal(signal.SIGINT)
             try:
                 rc = proc.wait(timeout=30.0)

@@ -18,9 +18,12 @@ its resource limits are reached). Requests: a burst from many learners waits whi
 """
 from __future__ import annotations
 
+import time
+
+from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-__all__ = ["RECORDED_QOS", "RECORDED_DEPTH", "SERVICE_QOS", "SERVICE_DEPTH"]
+__all__ = ["RECORDED_QOS", "RECORDED_DEPTH", "SERVICE_QOS", "SERVICE_DEPTH", "wait_acknowledged"]
 
 RECORDED_DEPTH = 100
 RECORDED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORDED_DEPTH,
@@ -29,3 +32,18 @@ RECORDED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORDED_DEPTH,
 SERVICE_DEPTH = 1000
 SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SERVICE_DEPTH,
                          reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+
+
+def wait_acknowledged(publishers, timeout_s: float, *, each: bool = False) -> bool:
+    """Waits until every matched reliable subscriber of each publisher has acknowledged what it published,
+    at most `timeout_s` in all (each=True: per publisher). A publisher with no matched subscriber is done at
+    once; a destroyed publisher or a shut-down context has nothing to hand over. True when all were in time."""
+    deadline = time.monotonic() + timeout_s
+    ok = True
+    for pub in publishers:
+        left = timeout_s if each else max(0.0, deadline - time.monotonic())
+        try:
+            ok = pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))) and ok
+        except Exception:
+            continue
+    return ok
