@@ -6,6 +6,7 @@ started separately (thesis defaults)."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import time
 
@@ -16,8 +17,9 @@ from comper_agent import run_io
 from comper_agent.core.comcact import ComcactLearner
 from comper_agent.core.config import ComcactConfig
 from comper_agent.policy_weights import POLICY_QOS, config_of_policy, load_policy_msg
-from comper_msgs.msg import PolicyWeights
+from comper_msgs.msg import EpisodeSummary, PolicyWeights
 from comper_msgs_py.arrays import Transitions
+from comper_msgs_py.qos import RECORDED_QOS as SUMMARY_QOS
 from conftest import spin_once
 
 TASK = "InvertedPendulum-v4"
@@ -76,9 +78,10 @@ def test_async_learner_with_two_actor_processes(launch, ros_node, tmp_path):
     np.testing.assert_allclose(from_msg.value_labels(t), from_ckpt.value_labels(t), atol=1e-5)
 
 
-def test_actor_started_separately_stores_into_a_separate_memory_node(launch, tmp_path):
+def test_actor_started_separately_stores_into_a_separate_memory_node(launch, ros_node, tmp_path):
     """bringup:=external with num_actors 0: memory_node, qt_trainer_node, sim_node, the learner and one
-    actor_node each started with ros2 run; the actor stops on the learner's final policy message."""
+    actor_node each started with ros2 run; the actor stops on the learner's final policy message, and a
+    subscriber of its ~/episodes receives every episode it reports, the last one included."""
     tag = os.getpid()
     sim, mem, qt, learner = f"sim_a{tag}", f"mem_a{tag}", f"qt_a{tag}", f"learner_a{tag}"
     launch("comper_sim", "sim_node", "--ros-args", "-p", f"env_id:={TASK}", "-r", f"__node:={sim}", name=sim)
@@ -92,12 +95,23 @@ def test_actor_started_separately_stores_into_a_separate_memory_node(launch, tmp
                   "-p", f"runs_root:={tmp_path}", "-p", "run_id:=ext", "-p", "tensorboard:=false",
                   "-p", "transport_probe_calls:=0", "-p", "startup_timeout_s:=60", "-r", f"comcact_node:__node:={learner}",
                   name=learner)
+    episodes: list[EpisodeSummary] = []
+    ros_node.create_subscription(EpisodeSummary, f"/actor_x{tag}/episodes", episodes.append, SUMMARY_QOS)
     actor = launch("comper_agent", "actor_node", "--ros-args", "-p", f"env_id:={TASK}", "-p", "seed:=5",
                    "-p", f"memory_node:={mem}", "-p", f"policy_topic:=/{learner}/policy", "-r", f"__node:=actor_x{tag}",
                    name=f"actor_x{tag}")
-    assert _wait(proc, 400) == 0, proc.log()[-4000:]
+    deadline = time.monotonic() + 400
+    while time.monotonic() < deadline and actor.alive():
+        spin_once(ros_node, 0.2)
+    assert _wait(proc, 60) == 0, proc.log()[-4000:]
     assert _wait(actor, 60) == 0, actor.log()[-3000:]
-    assert "final policy message" in actor.log()
+    for _ in range(20):
+        spin_once(ros_node, 0.1)
+    log = actor.log()
+    assert "final policy message" in log
+    reported = int(re.search(r"done: \d+ steps \([^)]*\), (\d+) episodes", log).group(1))
+    assert reported > 0 and len(episodes) == reported, (len(episodes), log[-2000:])
+    assert "had not acknowledged" not in log
     state = torch.load(tmp_path / "ext" / "checkpoints" / "latest.pt", weights_only=True)["state"]
     assert state["counters"]["step"] >= 300 and state["counters"]["reductions"] >= 1
     assert state["learner"]["qt_steps"] > 0
