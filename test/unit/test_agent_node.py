@@ -2,18 +2,21 @@
 (the start-up error test runs the node in a separate process)."""
 import dataclasses
 import functools
+import io
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
 
-from comper_agent.agent_main import help_text
+from comper_agent.agent_main import StopRequests, help_text
 from comper_agent.agent_node import AgentRunConfig, episode_over, redefault
 from comper_agent.comcact_node import ComcactNode, ComcactNodeConfig
 from comper_agent.comper_node import ComperNode, ComperNodeConfig
+from comper_agent.supervisor import Supervisor
 from comper_msgs_py.params import ConfigError, config_from_dict, config_to_dict
 
 _COMMON = {"bringup": "embedded", "episode_end": "standard", "runs_root": "runs", "run_id": "", "resume": "",
@@ -215,3 +218,38 @@ def test_resume_names_the_parameters_that_differ_from_the_checkpoint():
     assert changed_parameters(saved, now) == ["profile 'fresh_labels_gate' -> 'thesis'", "restore_batch True -> False",
                                               "qt_step_gate True -> False"]
     assert changed_parameters({}, now) == [] and changed_parameters(saved, saved) == []
+
+
+def _returns_within(fn, seconds: float = 5.0) -> bool:
+    """Runs fn in a helper thread; whether it returned within `seconds` (a deadlocked fn never does)."""
+    t = threading.Thread(target=fn, daemon=True)
+    t.start()
+    t.join(seconds)
+    return not t.is_alive()
+
+
+def test_the_learners_stop_handler_takes_no_lock_and_a_second_signal_aborts():
+    """A signal handler runs in the main thread, possibly inside Event.set / Event.wait with the event's lock
+    held (a second SIGTERM inside the first one's handler did that: the learner hung for ever). With both locks
+    held, StopRequests.handler still returns, the stop arrives once they are free, and a second signal raises
+    KeyboardInterrupt (abort)."""
+    node_stop, requests = threading.Event(), []
+    stops = StopRequests(lambda: (requests.append(1), node_stop.set()))
+    try:
+        with stops.stop._cond, node_stop._cond:
+            assert _returns_within(lambda: stops.handler(signal.SIGTERM, None))
+        assert node_stop.wait(5.0) and stops.stop.is_set() and requests == [1]
+        with pytest.raises(KeyboardInterrupt):
+            stops.handler(signal.SIGTERM, None)
+        time.sleep(0.1)
+        assert requests == [1]
+    finally:
+        stops.close()
+
+
+def test_the_supervisors_signal_handler_takes_no_lock():
+    """The same for bringup's supervisor: its handler only counts, the loops read the count."""
+    sup = Supervisor([], stop_timeout=1.0, ready_timeout=1.0, out=io.StringIO())
+    with sup.wake._cond:
+        assert _returns_within(lambda: sup.on_signal(signal.SIGINT, None))
+    assert sup.signals == 1

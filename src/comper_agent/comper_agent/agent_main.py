@@ -6,16 +6,18 @@ and exits 1. ``--help`` lists the node's parameters and its learner's hyper-para
 """
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
+from typing import Callable
 
 import rclpy
 from rclpy.signals import SignalHandlerOptions
 
 from comper_msgs_py.params import describe, spec_of
 
-__all__ = ["run_main", "help_text"]
+__all__ = ["run_main", "help_text", "StopRequests"]
 
 
 def help_text(cls) -> str:
@@ -39,6 +41,49 @@ def help_text(cls) -> str:
     return "\n".join(lines)
 
 
+class StopRequests:
+    """Ctrl-C / SIGTERM of a learner process, with a signal handler that takes no lock.
+
+    Python runs a signal handler in the main thread between two bytecodes, wherever that thread is, including
+    inside ``threading.Event.set`` or ``Event.wait`` with the event's lock held; a handler that sets an Event can
+    then wait for a lock its own thread holds, for ever. That happened when two signals came close together (a
+    learner whose supervisor was killed: parent-death SIGTERM, then more): the second handler ran inside the
+    first one's ``Event.set``. So :meth:`handler` only flips a flag and writes one byte to a pipe (both safe
+    there); a relay thread reads the byte, sets :attr:`stop` and calls ``on_request`` (which may take locks,
+    log, set other events). A second signal raises KeyboardInterrupt in the main thread (abort)."""
+
+    def __init__(self, on_request: Callable[[], None]):
+        self.requested = False
+        self.stop = threading.Event()
+        self._on_request = on_request
+        self._r, self._w = os.pipe()
+        os.set_blocking(self._w, False)
+        self._relay = threading.Thread(target=self._run, name="stop-requests", daemon=True)
+        self._relay.start()
+
+    def handler(self, signum, _frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        try:
+            os.write(self._w, b"s")
+        except OSError:         # full (a stop is already on its way) or closed (the process is ending)
+            pass
+
+    def _run(self) -> None:
+        while os.read(self._r, 1):
+            if not self.stop.is_set():
+                self.stop.set()
+                self._on_request()
+
+    def close(self) -> None:
+        """Ends the relay thread. A process keeps it to its end instead: with the handler still installed, a
+        late signal writes to the pipe, whose descriptor must not have been reused by then."""
+        os.close(self._w)
+        self._relay.join(timeout=5.0)
+        os.close(self._r)
+
+
 def run_main(node_cls: type, name: str, args=None) -> int:
     """An agent node's entry point: 0 done (or stopped with Ctrl-C / SIGTERM after saving), 1 cannot
     start / failed, 130 aborted by a second Ctrl-C. ``--help`` prints the parameters."""
@@ -49,24 +94,21 @@ def run_main(node_cls: type, name: str, args=None) -> int:
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     logger = rclpy.logging.get_logger(name)
     node = None
-    stop = threading.Event()
 
-    def on_signal(signum, _frame):
-        if stop.is_set():
-            raise KeyboardInterrupt
-        stop.set()
+    def on_request():       # the relay thread, after the first signal
         if node is not None:
             node.stop_event.set()
         logger.warning("stop requested: finishing the current step, then saving a checkpoint "
                        "(Ctrl-C again to abort)")
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    stops = StopRequests(on_request)
+    signal.signal(signal.SIGINT, stops.handler)
+    signal.signal(signal.SIGTERM, stops.handler)
     rc = 0
     try:
         try:
             node = node_cls()
-            if stop.is_set():
+            if stops.stop.is_set():     # requested while the node was built (on_request saw no node)
                 node.stop_event.set()
         except Exception as exc:   # bad parameter, unknown task, missing nodes: one readable message
             logger.error(f"cannot start: {exc}")

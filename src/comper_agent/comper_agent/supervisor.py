@@ -225,8 +225,10 @@ class Supervisor:
                  + " ".join(["--ros-args", *spec.ros_args] if spec.ros_args else []))
 
     def on_signal(self, signum, _frame) -> None:
+        # no self.wake.set() here: the handler runs in the main thread, possibly inside wake.wait / wake.set with
+        # the event's lock held, and would then wait for that lock for ever; the loops look at self.signals
+        # every 0.1-0.2 s
         self.signals += 1
-        self.wake.set()
 
     def _send(self, names, sig) -> None:
         for n in names:

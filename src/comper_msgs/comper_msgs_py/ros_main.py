@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import faulthandler
 import signal
-import threading
 from typing import Callable
 
 import rclpy
@@ -57,12 +56,14 @@ def serve_node(make_node: Callable[[], object], name: str, args=None, *,
     thread settings); on_close(node) after spinning, before destroy_node (e.g. a final flush);
     graceful, close_timeout_s: see the module docstring.
     """
-    stop = threading.Event()
+    # a plain flag, not a threading.Event: Event.set takes a lock, and a second signal's handler running inside
+    # the first one's Event.set would wait for that lock for ever (the handler runs in the main thread)
+    stopping = [False]
 
     def _stop(*_):
-        if not stop.is_set():   # the watchdog is armed once: a repeated signal must not push it back
+        if not stopping[0]:     # the watchdog is armed once: a repeated signal must not push it back
+            stopping[0] = True
             faulthandler.dump_traceback_later(close_timeout_s, exit=True)
-        stop.set()
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _stop)
@@ -78,7 +79,7 @@ def serve_node(make_node: Callable[[], object], name: str, args=None, *,
             on_ready(node)
         executor = executor_for(node) if executor_for is not None else default_executor(node)
         executor.add_node(node)
-        while not stop.is_set() and rclpy.ok(context=node.context):
+        while not stopping[0] and rclpy.ok(context=node.context):
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
