@@ -28,7 +28,7 @@ from rclpy.node import Node
 from comper_memory.client import MemoryClient, RateLimitTimeout, new_request_id
 from comper_msgs.msg import EpisodeSummary, PolicyWeights
 from comper_msgs_py.ros_params import declare_config
-from comper_msgs_py.qos import RECORDED_QOS as SUMMARY_QOS, wait_acknowledged
+from comper_msgs_py.qos import HAND_OVER_S, RECORDED_QOS as SUMMARY_QOS, wait_acknowledged
 from comper_msgs_py.service_client import ServiceError, ServiceTimeout
 
 from .agent_main import run_main
@@ -64,7 +64,7 @@ class ActorNode(Node):
     a background executor (policy subscription, episode publisher, memory client)."""
 
     CONFIG = ActorNodeConfig
-    HAND_OVER_S = 3.0   # at the end, the longest wait for subscribers to acknowledge the last episodes
+    HAND_OVER_S = HAND_OVER_S   # comper_msgs_py.qos: the longest wait for the last episodes to be acknowledged
 
     def __init__(self, node_name: str = "actor_node", **node_kwargs):
         super().__init__(node_name, **node_kwargs)
@@ -244,7 +244,7 @@ class ActorNode(Node):
             pass
         # the last EpisodeSummary usually goes out just before the actor ends (its budget spent, or the
         # learner's SIGINT): destroying the publisher first would drop it for a subscriber that had not
-        # acknowledged it yet (the learner's hand-over, agent_node.AgentNode.HAND_OVER_S)
+        # acknowledged it yet (as the learner's hand-over in agent_node.AgentNode.shutdown)
         if not wait_acknowledged((self.episode_pub,), self.HAND_OVER_S):
             self.log.warning(f"a subscriber of ~/episodes had not acknowledged this actor's last "
                              f"episodes after {self.HAND_OVER_S:g} s; it may miss them")

@@ -23,6 +23,7 @@ import numpy as np
 from rclpy.node import Node
 
 from comper_msgs_py.params import config_to_dict
+from comper_msgs_py.qos import HAND_OVER_S
 from comper_msgs_py.ros_params import declare_config
 from comper_msgs_py.service_client import ServiceError, wait_for_services
 from comper_sim.client import SimClient
@@ -71,7 +72,7 @@ class AgentNode(Node):
     QT_START_HINT = ""                       # extra arguments in the hint for starting a QT trainer
     PROFILES: dict = {}                      # profile -> {field: (value, source)} (core/config.py); {} = none
     TIMED_CALLS = ("sim", "memory", "qt", "memory_reduce")   # phases made of service calls
-    HAND_OVER_S = 3.0   # at the end, the longest wait for subscribers to acknowledge the last results
+    HAND_OVER_S = HAND_OVER_S   # comper_msgs_py.qos: the longest wait for the last results to be acknowledged
 
     uses_memory = False
     uses_qt = False

@@ -23,7 +23,7 @@ import time
 from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-__all__ = ["RECORDED_QOS", "RECORDED_DEPTH", "SERVICE_QOS", "SERVICE_DEPTH", "wait_acknowledged"]
+__all__ = ["RECORDED_QOS", "RECORDED_DEPTH", "SERVICE_QOS", "SERVICE_DEPTH", "HAND_OVER_S", "wait_acknowledged"]
 
 RECORDED_DEPTH = 100
 RECORDED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORDED_DEPTH,
@@ -32,6 +32,11 @@ RECORDED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORDED_DEPTH,
 SERVICE_DEPTH = 1000
 SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SERVICE_DEPTH,
                          reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+
+
+#: a node's hand-over at its end: the longest wait, in all, for the matched subscribers of its result topics
+#: to acknowledge its last messages before its publishers are destroyed (the learners' and the actors')
+HAND_OVER_S = 3.0
 
 
 def wait_acknowledged(publishers, timeout_s: float, *, each: bool = False) -> bool:
