@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import yaml
 
-from comper_agent.core.networks import NatureCNN
+from comper_agent.value_checks import load_policy
 from comper_sim.core.config import SimConfig
 from comper_sim.core.envs import make_env
 
@@ -57,7 +57,6 @@ def main() -> None:
     states, names = random_play_states(env_id, pooling, stack, args.reset_seed, args.every)
     states = torch.as_tensor(states)
     up, down = np.array(["UP" in a for a in names]), np.array(["DOWN" in a for a in names])
-    q = NatureCNN(stack, len(names))
     rows = []
     checkpoints = sorted(args.run.glob("checkpoints/step_*.pt"))
     if not checkpoints:
@@ -65,8 +64,10 @@ def main() -> None:
     print(f"{env_id}: {len(states)} states of one random-play episode, {len(checkpoints)} checkpoints\n")
     print("| step | mean max-min Q | mean max Q | greedy UP | greedy DOWN | distinct greedy |\n|---|---|---|---|---|---|")
     for ck in checkpoints:
-        q.load_state_dict(torch.load(ck, weights_only=True)["state"]["learner"]["q"])
-        q.eval()
+        policy = load_policy(ck)           # the Q-network, shapes from the checkpoint (format checked)
+        if policy.kind != "dqn":
+            raise SystemExit(f"{ck}: not a COMPER / DQN checkpoint")
+        q = policy.q
         with torch.no_grad():
             v = q(states)
         greedy = v.argmax(dim=1).numpy()
