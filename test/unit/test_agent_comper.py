@@ -349,3 +349,58 @@ def test_target_labels_are_the_target_networks_bootstrap_and_leave_the_qt_target
     with pytest.raises(ValueError, match="qt_label:=next_value"):
         ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp", "label_network": "target",
                                                       "qt_label": "q_sa"}), obs_shape=(3,), n_actions=4)
+
+
+def test_qt_target_gate_takes_the_target_networks_bootstrap_only_where_qt_is_off_by_more_than_its_spread():
+    """qt_target_gate (comper): per batch, error = RMS(QT(tau) - B(s')) and spread = std(B(s')) over the
+    non-terminal rows, B the target network's bootstrap computed here by hand; error > spread: the targets are
+    comper_f's, r + gamma (1 - terminated) B(s'); otherwise QT's. Counted, reported, checkpointed; off by
+    default (no target network), and comper_f has nothing to gate."""
+    assert ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp"}), obs_shape=(3,), n_actions=4
+                         ).q_target is None
+    for double in (True, False):
+        lrn = ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp", "qt_target_gate": True,
+                                                            "double_dqn": double}), obs_shape=(3,), n_actions=4)
+        assert lrn.uses_target_net and lrn.gates_qt and not lrn.bootstraps_from_target
+        rng = np.random.default_rng(7)
+        n = 32
+        term = np.zeros(n, bool)
+        term[:4] = True
+        b = Transitions(states=rng.normal(size=(n, 3)).astype(np.float32), actions=rng.integers(0, 4, n),
+                        rewards=rng.normal(size=n).astype(np.float32),
+                        next_states=rng.normal(size=(n, 3)).astype(np.float32), terminated=term,
+                        truncated=np.zeros(n, bool))
+        for _ in range(10):                    # the online network moves away from its copy
+            lrn.update(b, np.zeros(n, np.float32))
+        with torch.no_grad():
+            ns = torch.as_tensor(b.next_states)
+            q_on, q_tg = lrn.q(ns).numpy(), lrn.q_target(ns).numpy()
+        boot = q_tg[np.arange(n), q_on.argmax(1)] if double else q_tg.max(1)
+        spread = boot[~term].std()
+        assert spread > 0
+        r = np.clip(b.rewards, -1, 1)
+        close = boot + 0.5 * spread                  # error 0.5 x spread: QT's targets stay
+        far = boot + 2.0 * spread                    # error 2 x spread: the target network's
+        g = lrn.qt_gate(b, far)
+        assert g["gated"] and g["error"] == pytest.approx(2.0 * spread, rel=1e-4)
+        assert g["spread"] == pytest.approx(float(spread), rel=1e-4)
+        assert not lrn.qt_gate(b, close)["gated"]
+        np.testing.assert_allclose(lrn.targets(b, close).numpy(), r + 0.99 * ~term * close, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(lrn.targets(b, far).numpy(), r + 0.99 * ~term * boot, rtol=1e-5, atol=1e-6)
+        diag = lrn.qt_diagnostics(b, far)
+        assert diag["qt_gate_on"] == 1.0 and diag["qt_gate_spread"] == pytest.approx(float(spread), rel=1e-4)
+        before = lrn.qt_gated, lrn.updates
+        assert lrn.update(b, far)["qt_gated"] == 1.0
+        assert lrn.update(b, close)["qt_gated"] == 0.0
+        assert lrn.qt_gated == before[0] + 1 and lrn.updates == before[1] + 2
+        ended = Transitions(states=b.states, actions=b.actions, rewards=b.rewards, next_states=b.next_states,
+                            terminated=np.ones(n, bool), truncated=b.truncated)
+        assert not lrn.qt_gate(ended, far)["gated"]          # no bootstrap to compare
+        restored = ComperLearner(lrn.config, obs_shape=(3,), n_actions=4)
+        restored.load_state_dict(lrn.state_dict())
+        assert restored.qt_gated == lrn.qt_gated
+    plain = ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp"}), obs_shape=(3,), n_actions=4)
+    assert "qt_gated" not in plain.update(b, far) and "qt_gate_on" not in plain.qt_diagnostics(b, far)
+    f = ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp", "variant": "comper_f",
+                                                      "qt_target_gate": True}), obs_shape=(3,), n_actions=4)
+    assert not f.gates_qt and "qt_gated" not in f.update(b)

@@ -19,6 +19,8 @@ sits at sqrt(0.01) and the CNN barely moves). ``mean`` divides by the batch size
 rmsprop_dm, divides min_sq_grad by batch_size^2, which gives the identical step. Targets:
 
     comper, comper_m:  y = clip(r) + gamma (1 - terminated) QT(tau)       (qt_targets passed in)
+                       (qt_target_gate: the batch takes comper_f's bootstrap instead when
+                        RMS(QT(tau) - B(s')) > std(B(s')) over its non-terminal rows)
     comper_f, dqn:     y = clip(r) + gamma (1 - terminated) max_a Q_target(s', a)
                        (double_dqn: Q_target(s', argmax_a Q(s', a)))
     dqn, n_step n > 1: y = sum_j<m gamma^j clip(r_j) + gamma^m (1 - terminated_m) bootstrap(s_m)
@@ -145,7 +147,8 @@ class ComperLearner:
         # label_network target keep one for their value labels only (targets come from QT)
         self.bootstraps_from_target = c.variant in ("comper_f", "dqn")
         self.target_labels = c.label_network == "target" and not self.bootstraps_from_target
-        self.uses_target_net = self.bootstraps_from_target or self.target_labels
+        self.gates_qt = c.qt_target_gate and not self.bootstraps_from_target
+        self.uses_target_net = self.bootstraps_from_target or self.target_labels or self.gates_qt
         self.q_target = copy.deepcopy(self.q) if self.uses_target_net else None
         if self.q_target is not None:
             for p in self.q_target.parameters():
@@ -157,6 +160,7 @@ class ComperLearner:
                                         sq_grad_momentum=c.rms_sq_grad_momentum, min_sq_grad=c.rms_min_sq_grad)
         self.rng = np.random.default_rng(c.seed)
         self.updates = 0
+        self.qt_gated = 0     # updates whose batch qt_target_gate sent to the target network's bootstrap
         # the COMPER variants with n_step > 1 sample stored n-step windows (memory_schedule.NStepWindows):
         # their rewards are already clipped and discounted, their bootstrap is n steps on
         self.window_rewards = c.n_step > 1 and c.variant != "dqn"
@@ -221,12 +225,31 @@ class ComperLearner:
         return float(self._target_bootstrap(self._t(next_obs)[None], self._t(q_online, torch.float32)[None])[0])
 
     @torch.no_grad()
+    def qt_gate(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
+        """``qt_target_gate``'s test on this batch: error = RMS of QT(tau) - B(s') and spread = the standard
+        deviation of B(s') (B: the target network's bootstrap), both over the non-terminal rows; gated =
+        error > spread (then the batch bootstraps from B). No non-terminal row: not gated."""
+        live = self._t(batch.terminated, torch.float32) < 0.5
+        if not bool(live.any()):
+            return {"gated": False, "error": 0.0, "spread": 0.0, "bootstrap": None}
+        b = self._target_bootstrap(self._t(batch.next_states))
+        qt = self._t(qt_targets, torch.float32).reshape(-1)
+        error = float(torch.sqrt(torch.mean((qt[live] - b[live]) ** 2)))
+        spread = float(b[live].std(unbiased=False))
+        return {"gated": error > spread, "error": error, "spread": spread, "bootstrap": b}
+
+    @torch.no_grad()
     def targets(self, batch: Transitions, qt_targets: np.ndarray | None = None,
                 n_step: NStepRewards | None = None) -> torch.Tensor:
         """TD targets; with `n_step` (a replay's n-step windows, whose last transition `batch` ends at):
         sum_j gamma^j clip(r_j) over each window + gamma^length (1 - terminated) x bootstrap. A COMPER
         variant with ``n_step`` > 1 samples stored windows: r (their return) + gamma^n (1 - terminated)
-        x bootstrap of s_{t+n}."""
+        x bootstrap of s_{t+n}. ``qt_target_gate``: :meth:`qt_gate` picks QT's bootstrap or B's."""
+        return self._targets(batch, qt_targets, n_step)[0]
+
+    def _targets(self, batch: Transitions, qt_targets: np.ndarray | None,
+                 n_step: NStepRewards | None) -> tuple[torch.Tensor, bool | None]:
+        """(targets, gated: whether qt_target_gate took the target network's bootstrap; None without it)."""
         c = self.config
         if self.window_rewards:
             if n_step is not None:
@@ -244,13 +267,19 @@ class ComperLearner:
             r = (rw * in_window * c.gamma ** j.to(rw.dtype)).sum(dim=1)
             discount = c.gamma ** lengths.to(rw.dtype)
         not_done = 1.0 - self._t(batch.terminated, torch.float32)
+        gated = None
         if self.bootstraps_from_target:
             boot = self._target_bootstrap(self._t(batch.next_states))
         else:
             if qt_targets is None:
                 raise ValueError(f"variant {c.variant} needs qt_targets")
             boot = self._t(qt_targets, torch.float32).reshape(-1)
-        return r + discount * not_done * boot
+            if self.gates_qt:
+                gate = self.qt_gate(batch, qt_targets)
+                gated = gate["gated"]
+                if gated:
+                    boot = gate["bootstrap"]
+        return r + discount * not_done * boot, gated
 
     @torch.no_grad()
     def qt_diagnostics(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
@@ -268,7 +297,8 @@ class ComperLearner:
         (1: QT follows the network's state values; NaN with fewer than 2 rows or no spread);
         q_gap_mean: mean over the batch's states of max_a Q(s, a) - min_a Q(s, a);
         greedy_top_share: the share of the batch's states whose greedy action is the batch's most
-        common one (1 = one action in every sampled state)."""
+        common one (1 = one action in every sampled state). With ``qt_target_gate`` also
+        :meth:`_gate_diagnostics`."""
         s = self._t(batch.states)
         live = self._t(batch.terminated, torch.float32) < 0.5
         v_next = self._label_bootstrap(self._t(batch.next_states)) * live
@@ -293,7 +323,16 @@ class ComperLearner:
                 "v_next_std": float(v_live.std(unbiased=False)) if v_live.numel() else float("nan"),
                 "qt_v_corr": corr,
                 "q_gap_mean": float((q.max(dim=1).values - q.min(dim=1).values).mean()),
-                "greedy_top_share": float(torch.bincount(greedy).max()) / max(len(batch), 1)}
+                "greedy_top_share": float(torch.bincount(greedy).max()) / max(len(batch), 1),
+                **self._gate_diagnostics(batch, qt_targets)}
+
+    def _gate_diagnostics(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
+        """With ``qt_target_gate``: its test on the batch (:meth:`qt_gate`) as qt_gate_error, qt_gate_spread and
+        qt_gate_on (1.0 = this batch takes the target network's bootstrap)."""
+        if not self.gates_qt:
+            return {}
+        g = self.qt_gate(batch, qt_targets)
+        return {"qt_gate_error": g["error"], "qt_gate_spread": g["spread"], "qt_gate_on": float(g["gated"])}
 
     def _loss(self, batch: Transitions, y: torch.Tensor) -> torch.Tensor:
         q = self.q(self._t(batch.states))
@@ -314,7 +353,7 @@ class ComperLearner:
         """One gradient step on `batch` (qt_targets required for comper / comper_m; n_step: the n-step
         windows of a replay draw, :meth:`targets`). Returns the mean Huber loss per transition (comparable
         across ``loss_reduction``) and the mean target."""
-        y = self.targets(batch, qt_targets, n_step)
+        y, gated = self._targets(batch, qt_targets, n_step)
         loss = self._loss(batch, y)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -326,8 +365,13 @@ class ComperLearner:
                 group["min_sq_grad"] = self.config.rms_min_sq_grad / scale
         self.optimizer.step()
         self.updates += 1
-        return {"loss": float(loss.detach()) / (len(batch) if self.config.loss_reduction == "sum" else 1),
+        info = {"loss": float(loss.detach()) / (len(batch) if self.config.loss_reduction == "sum" else 1),
                 "target_mean": float(y.mean())}
+        if gated is not None:
+            self.qt_gated += int(gated)
+            info["qt_gated"] = float(gated)
+            info["qt_gated_share"] = self.qt_gated / self.updates
+        return info
 
     def sync_target(self) -> None:
         if self.q_target is not None:
@@ -336,7 +380,7 @@ class ComperLearner:
     # ------------------------------------------------------------------ checkpointing
     def state_dict(self) -> dict:
         d = {"q": self.q.state_dict(), "optimizer": self.optimizer.state_dict(),
-             "updates": self.updates, "rng": self.rng.bit_generator.state}
+             "updates": self.updates, "rng": self.rng.bit_generator.state, "qt_gated": self.qt_gated}
         if self.q_target is not None:
             d["q_target"] = self.q_target.state_dict()
         return d
@@ -347,4 +391,5 @@ class ComperLearner:
         if self.q_target is not None and "q_target" in d:
             self.q_target.load_state_dict(d["q_target"])
         self.updates = int(d["updates"])
+        self.qt_gated = int(d.get("qt_gated", 0))
         self.rng.bit_generator.state = d["rng"]

@@ -259,6 +259,16 @@ class ComperConfig:
         deviation="target: a QT fitted on these labels estimates the bootstrap that comper_f and dqn take from "
         "their target network, instead of the online network's max, which each label's own max inflates and the "
         "next label inherits (method.md 6.9)")
+    qt_target_gate: bool = param(
+        False, "comper, comper_m: per batch, bootstrap from the target network (as comper_f: Q_target(s', "
+        "argmax_a Q(s', a)) with double_dqn, max_a Q_target(s', a) without) instead of QT(tau) when QT's bootstrap "
+        "differs from the target network's by more than the target network's varies between the batch's states: "
+        "RMS over non-terminal rows of QT(tau) - B(s') > their standard deviation of B(s'). Adds a target network, "
+        "copied every target_update_every agent steps",
+        thesis="off (Algorithm 7: QT gives every TD target; there is no target network)",
+        deviation="on = QT's target only where it carries more of the state-dependent bootstrap than it loses in "
+        "error; on Freeway, before the first reward, QT's error is a median 6 times that spread and the Q gap "
+        "collapses (docs/comper.md, \"Why 10-step COMPER misses Freeway's road\")")
     n_actions: int = param(0, "outputs of the Q-network; 0 = the environment's action count (an ALE game "
                            "with the full action set: 18)", thesis="18 (appendix A.4, the ALE full action set)",
                            minimum=0)
