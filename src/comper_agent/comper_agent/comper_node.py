@@ -220,6 +220,7 @@ class ComperNode(AgentNode):
                 + (f"; reduce every {p.reduce_every} steps x {p.reduce_batch} sets via {self.reducer}"
                    if self.uses_memory else f"; replay {c.replay_size}")
                 + (f"; target network every {c.target_update_every} steps" if self.learner.uses_target_net else "")
+                + ("; qt_target_gate: QT's or the target network's bootstrap per batch" if self.learner.gates_qt else "")
                 + (f"; evaluation every {self.eval_every} steps x {p.eval_episodes} episodes" if self.eval_every else "")
                 + f"; profile {self.profile}, {self.network} Q-network, {c.optimizer} (loss {c.loss_reduction}), "
                   f"reward clip {c.reward_clip}; torch threads {c.num_threads}")
@@ -530,6 +531,8 @@ class ComperNode(AgentNode):
                    "sampling": {"source": ("replay" if not self.uses_memory else
                                            self.sample_source),
                                 "target": "qt" if self.uses_qt else "target_network",
+                                # qt_target_gate: the updates whose batch took the target network's bootstrap
+                                **({"qt_gated": int(self.learner.qt_gated)} if self.learner.gates_qt else {}),
                                 "reducer": self.reducer, "sample_calls": int(self.mem.sample_calls if self.mem else 0),
                                 "restored": int(self.mem.restored if self.mem else 0),
                                 "n_step": int(self.cfg.n_step),
