@@ -263,6 +263,8 @@ def report(args) -> None:
     for rid, s in sorted(records.items()):
         if s["game"] not in args.games or s["variant"] not in args.variants:
             continue        # --games and --variants select the rows and curves, of this sweep and the includes
+        if args.report_seeds is not None and s["seed"] not in args.report_seeds:
+            continue
         key = (s["game"], s["variant"])
         rows.setdefault(key, []).append(s)
         curves.setdefault(s["game"], {}).setdefault(s["variant"], []).append(
@@ -413,6 +415,9 @@ def main(argv=None) -> int:
                     help="atari_constant_actions.py's JSON: random-play and best-constant rows per game")
     ap.add_argument("--policy", nargs="+", default=[], metavar="POLICY_JSON",
                     help="atari_policy_check.py --json output(s): the policy column")
+    ap.add_argument("--report-seeds", nargs="+", type=int, default=None, metavar="SEED",
+                    help="the report's rows and curves take only these seeds (default: every seed of this sweep and "
+                         "the includes), e.g. to compare variants on the same seeds while one has fewer")
     ap.add_argument("--baseline", default="", metavar="VARIANT",
                     help="also a table of each variant's difference to this one per game, with its bootstrap "
                          "95%% interval (differences.json)")

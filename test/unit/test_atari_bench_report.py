@@ -37,6 +37,13 @@ def test_games_and_variants_select_the_rows_of_included_runs(tmp_path):
                 "--include", str(include)])
     assert len(json.loads((everything / "table.json").read_text())) == 6
 
+    # --report-seeds: the same seeds for every row (a variant run on fewer seeds against the others)
+    same = tmp_path / "same"
+    bench.main(["--out", str(same), "--report-only", "--games", "Freeway", "--variants", "dqn", "comper",
+                "--include", str(include), "--report-seeds", "1"])
+    assert sorted((r["variant"], tuple(r["seeds"])) for r in json.loads((same / "table.json").read_text())) == [
+        ("comper", (1,)), ("dqn", (1,))]
+
 
 def test_an_unfinished_runs_curve_stops_where_the_run_stopped_and_its_row_says_so(tmp_path):
     """A report made while a run is under way (a long run continued over sessions) drew the run's last episode
