@@ -309,6 +309,17 @@ def test_qt_diagnostics_measure_qt_against_the_networks_own_bootstrap():
     assert all(torch.equal(before[k], p) for k, p in lrn.q.state_dict().items())
 
 
+def vector_batch(n: int, terminated_first: int, seed: int) -> Transitions:
+    """n transitions of 3-d vector states and 4 actions, the first `terminated_first` terminated."""
+    rng = np.random.default_rng(seed)
+    term = np.zeros(n, bool)
+    term[:terminated_first] = True
+    return Transitions(states=rng.normal(size=(n, 3)).astype(np.float32), actions=rng.integers(0, 4, n),
+                       rewards=rng.normal(size=n).astype(np.float32),
+                       next_states=rng.normal(size=(n, 3)).astype(np.float32), terminated=term,
+                       truncated=np.zeros(n, bool))
+
+
 def test_target_labels_are_the_target_networks_bootstrap_and_leave_the_qt_target_alone():
     """label_network target (comper): labels = Q_target(s', argmax_a Q(s', a)) with double_dqn, max_a Q_target(s', a)
     without, 0 when terminated, computed here by hand after the online network has moved away from its copy;
@@ -317,14 +328,9 @@ def test_target_labels_are_the_target_networks_bootstrap_and_leave_the_qt_target
         lrn = ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp", "label_network": "target",
                                                             "double_dqn": double}), obs_shape=(3,), n_actions=4)
         assert lrn.uses_target_net and lrn.target_labels and not lrn.bootstraps_from_target
-        rng = np.random.default_rng(5)
         n = 16
-        term = np.zeros(n, bool)
-        term[:3] = True
-        b = Transitions(states=rng.normal(size=(n, 3)).astype(np.float32), actions=rng.integers(0, 4, n),
-                        rewards=rng.normal(size=n).astype(np.float32),
-                        next_states=rng.normal(size=(n, 3)).astype(np.float32), terminated=term,
-                        truncated=np.zeros(n, bool))
+        b = vector_batch(n, 3, seed=5)
+        term = b.terminated
         qt = np.full(n, 0.5, np.float32)
         for _ in range(20):
             lrn.update(b, qt)                  # the online network moves; the target copy stays
@@ -362,14 +368,9 @@ def test_qt_target_gate_takes_the_target_networks_bootstrap_only_where_qt_is_off
         lrn = ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp", "qt_target_gate": True,
                                                             "double_dqn": double}), obs_shape=(3,), n_actions=4)
         assert lrn.uses_target_net and lrn.gates_qt and not lrn.bootstraps_from_target
-        rng = np.random.default_rng(7)
         n = 32
-        term = np.zeros(n, bool)
-        term[:4] = True
-        b = Transitions(states=rng.normal(size=(n, 3)).astype(np.float32), actions=rng.integers(0, 4, n),
-                        rewards=rng.normal(size=n).astype(np.float32),
-                        next_states=rng.normal(size=(n, 3)).astype(np.float32), terminated=term,
-                        truncated=np.zeros(n, bool))
+        b = vector_batch(n, 4, seed=7)
+        term = b.terminated
         for _ in range(10):                    # the online network moves away from its copy
             lrn.update(b, np.zeros(n, np.float32))
         with torch.no_grad():
