@@ -247,6 +247,7 @@ class ComperLearner:
         x bootstrap of s_{t+n}. ``qt_target_gate``: :meth:`qt_gate` picks QT's bootstrap or B's."""
         return self._targets(batch, qt_targets, n_step)[0]
 
+    @torch.no_grad()
     def _targets(self, batch: Transitions, qt_targets: np.ndarray | None,
                  n_step: NStepRewards | None) -> tuple[torch.Tensor, bool | None]:
         """(targets, gated: whether qt_target_gate took the target network's bootstrap; None without it)."""
