@@ -390,6 +390,19 @@ def test_qt_target_gate_takes_the_target_networks_bootstrap_only_where_qt_is_off
         np.testing.assert_allclose(lrn.targets(b, far).numpy(), r + 0.99 * ~term * boot, rtol=1e-5, atol=1e-6)
         diag = lrn.qt_diagnostics(b, far)
         assert diag["qt_gate_on"] == 1.0 and diag["qt_gate_spread"] == pytest.approx(float(spread), rel=1e-4)
+        # the diagnostics compare QT itself with V(s') = max_a Q(s', a) (the labels' network), and the TD error
+        # is against the target the loss sees (here the target network's)
+        with torch.no_grad():
+            q_sa = lrn.q(torch.as_tensor(b.states)).numpy()[np.arange(n), b.actions]
+        v = q_on.max(1) * ~term
+        qt_rmse = np.sqrt(np.mean((0.99 * ~term * (far - v)) ** 2))
+        assert diag["qt_target_rmse"] == pytest.approx(float(qt_rmse), rel=1e-4)
+        td = np.sqrt(np.mean((q_sa - (r + 0.99 * ~term * boot)) ** 2))
+        assert diag["td_rmse"] == pytest.approx(float(td), rel=1e-4)
+        open_diag = lrn.qt_diagnostics(b, close)
+        assert open_diag["qt_gate_on"] == 0.0
+        td = np.sqrt(np.mean((q_sa - (r + 0.99 * ~term * close)) ** 2))
+        assert open_diag["td_rmse"] == pytest.approx(float(td), rel=1e-4)
         before = lrn.qt_gated, lrn.updates
         assert lrn.update(b, far)["qt_gated"] == 1.0
         assert lrn.update(b, close)["qt_gated"] == 0.0

@@ -248,9 +248,11 @@ class ComperLearner:
         return self._targets(batch, qt_targets, n_step)[0]
 
     @torch.no_grad()
-    def _targets(self, batch: Transitions, qt_targets: np.ndarray | None,
-                 n_step: NStepRewards | None) -> tuple[torch.Tensor, bool | None]:
-        """(targets, gated: whether qt_target_gate took the target network's bootstrap; None without it)."""
+    def _targets(self, batch: Transitions, qt_targets: np.ndarray | None, n_step: NStepRewards | None,
+                 gate: bool = True) -> tuple[torch.Tensor, bool | None]:
+        """(targets, gated: whether qt_target_gate took the target network's bootstrap; None without it).
+        gate=False: the targets with `qt_targets` as the bootstrap whatever the gate would decide (diagnostics
+        that compare bootstraps)."""
         c = self.config
         if self.window_rewards:
             if n_step is not None:
@@ -275,11 +277,11 @@ class ComperLearner:
             if qt_targets is None:
                 raise ValueError(f"variant {c.variant} needs qt_targets")
             boot = self._t(qt_targets, torch.float32).reshape(-1)
-            if self.gates_qt:
-                gate = self.qt_gate(batch, qt_targets)
-                gated = gate["gated"]
+            if gate and self.gates_qt:
+                test = self.qt_gate(batch, qt_targets)
+                gated = test["gated"]
                 if gated:
-                    boot = gate["bootstrap"]
+                    boot = test["bootstrap"]
         return r + discount * not_done * boot, gated
 
     @torch.no_grad()
@@ -287,24 +289,32 @@ class ComperLearner:
         """How QT's bootstrap compares on this batch (no parameter moves) with V(s'), the value label a
         re-store writes now (0 when terminated): max_a Q(s', a) of the network being trained, or with
         ``label_network`` target the target network's bootstrap. y_QT and y_V are :meth:`targets` with
-        either bootstrap.
+        either bootstrap (``qt_target_gate`` not applied: they compare QT with V(s')).
 
-        qt_target_rmse: RMS of y_QT - y_V; td_rmse: RMS of Q(s, a) - y_QT (the error this update's loss
-        sees); qt_bias: mean of QT(tau) - V(s') over non-terminal rows (positive: QT above the network);
-        label_bias: the same for the value labels the sampled entries carry (RTM: QT's prediction from
-        the entry's last reduction; TM: the set's newest label; NaN without labels); v_next_mean,
-        v_next_std: mean and spread of V(s') over non-terminal rows (the state-dependent part that an
-        RMS is to be read against); qt_v_corr: Pearson correlation of QT(tau) with V(s') over those rows
-        (1: QT follows the network's state values; NaN with fewer than 2 rows or no spread);
-        q_gap_mean: mean over the batch's states of max_a Q(s, a) - min_a Q(s, a);
-        greedy_top_share: the share of the batch's states whose greedy action is the batch's most
-        common one (1 = one action in every sampled state). With ``qt_target_gate`` also
-        :meth:`_gate_diagnostics`."""
+        qt_target_rmse: RMS of y_QT - y_V; td_rmse: RMS of Q(s, a) - the target this update's loss sees (y_QT,
+        or the target network's where ``qt_target_gate`` takes it); qt_bias: mean of QT(tau) - V(s') over
+        non-terminal rows (positive: QT above the network); label_bias: the same for the value labels the
+        sampled entries carry (RTM: QT's prediction from the entry's last reduction; TM: the set's newest label;
+        NaN without labels); v_next_mean, v_next_std: mean and spread of V(s') over non-terminal rows (the
+        state-dependent part that an RMS is to be read against); qt_v_corr: Pearson correlation of QT(tau) with
+        V(s') over those rows (1: QT follows the network's state values; NaN with fewer than 2 rows or no
+        spread); q_gap_mean: mean over the batch's states of max_a Q(s, a) - min_a Q(s, a); greedy_top_share:
+        the share of the batch's states whose greedy action is the batch's most common one (1 = one action in
+        every sampled state). With ``qt_target_gate`` also its test (:meth:`qt_gate`): qt_gate_error,
+        qt_gate_spread and qt_gate_on (1.0 = this batch takes the target network's bootstrap)."""
         s = self._t(batch.states)
         live = self._t(batch.terminated, torch.float32) < 0.5
         v_next = self._label_bootstrap(self._t(batch.next_states)) * live
         qt = self._t(qt_targets, torch.float32).reshape(-1)
-        y_qt, y_v = self.targets(batch, qt), self.targets(batch, v_next.cpu().numpy())
+        y_qt = self._targets(batch, qt, None, gate=False)[0]
+        y_v = self._targets(batch, v_next.cpu().numpy(), None, gate=False)[0]
+        y_loss, gate = y_qt, {}
+        if self.gates_qt:
+            test = self.qt_gate(batch, qt_targets)
+            gate = {"qt_gate_error": test["error"], "qt_gate_spread": test["spread"],
+                    "qt_gate_on": float(test["gated"])}
+            if test["gated"]:
+                y_loss = self._targets(batch, test["bootstrap"].cpu().numpy(), None, gate=False)[0]
         q = self.q(s)
         q_sa = q.gather(1, self._t(batch.actions, torch.int64).reshape(-1, 1)).squeeze(1)
         greedy = q.argmax(dim=1)
@@ -317,7 +327,7 @@ class ComperLearner:
         spread = v_live.numel() > 1 and float(v_live.std()) > 0 and float(qt_live.std()) > 0
         corr = float(torch.corrcoef(torch.stack([qt_live, v_live]))[0, 1]) if spread else float("nan")
         return {"qt_target_rmse": float(torch.sqrt(torch.mean((y_qt - y_v) ** 2))),
-                "td_rmse": float(torch.sqrt(torch.mean((q_sa - y_qt) ** 2))),
+                "td_rmse": float(torch.sqrt(torch.mean((q_sa - y_loss) ** 2))),
                 "qt_bias": bias(qt),
                 "label_bias": bias(self._t(batch.value_labels, torch.float32)) if labelled else float("nan"),
                 "v_next_mean": float(v_live.mean()) if v_live.numel() else float("nan"),
@@ -325,15 +335,7 @@ class ComperLearner:
                 "qt_v_corr": corr,
                 "q_gap_mean": float((q.max(dim=1).values - q.min(dim=1).values).mean()),
                 "greedy_top_share": float(torch.bincount(greedy).max()) / max(len(batch), 1),
-                **self._gate_diagnostics(batch, qt_targets)}
-
-    def _gate_diagnostics(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
-        """With ``qt_target_gate``: its test on the batch (:meth:`qt_gate`) as qt_gate_error, qt_gate_spread and
-        qt_gate_on (1.0 = this batch takes the target network's bootstrap)."""
-        if not self.gates_qt:
-            return {}
-        g = self.qt_gate(batch, qt_targets)
-        return {"qt_gate_error": g["error"], "qt_gate_spread": g["spread"], "qt_gate_on": float(g["gated"])}
+                **gate}
 
     def _loss(self, batch: Transitions, y: torch.Tensor) -> torch.Tensor:
         q = self.q(self._t(batch.states))
