@@ -415,6 +415,25 @@ def test_qt_target_gate_takes_the_target_networks_bootstrap_only_where_qt_is_off
         assert restored.qt_gated == lrn.qt_gated
     plain = ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp"}), obs_shape=(3,), n_actions=4)
     assert "qt_gated" not in plain.update(b, far) and "qt_gate_on" not in plain.qt_diagnostics(b, far)
+    # qt_gate_reference label: QT is tested against V(s') = max_a Q(s', a) (the labels' bootstrap, computed
+    # here by hand) and its spread; a gated batch still takes the target network's bootstrap B
+    lrn = ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp", "qt_target_gate": True,
+                                                        "qt_gate_reference": "label"}), obs_shape=(3,), n_actions=4)
+    for _ in range(10):
+        lrn.update(b, np.zeros(n, np.float32))
+    with torch.no_grad():
+        q_on, q_tg = lrn.q(ns).numpy(), lrn.q_target(ns).numpy()
+    v, boot = q_on.max(1), q_tg.max(1)                    # double_dqn off (the default)
+    spread_v = v[~term].std()
+    near_v, far_v = v + 0.5 * spread_v, v + 2.0 * spread_v
+    # near_v is off from B by more than B's spread: the target test would gate it
+    assert np.sqrt(np.mean((near_v - boot)[~term] ** 2)) > boot[~term].std()
+    g = lrn.qt_gate(b, far_v)
+    assert g["gated"] and g["error"] == pytest.approx(2.0 * spread_v, rel=1e-4)
+    assert g["spread"] == pytest.approx(float(spread_v), rel=1e-4)
+    assert not lrn.qt_gate(b, near_v)["gated"]
+    np.testing.assert_allclose(lrn.targets(b, near_v).numpy(), r + 0.99 * ~term * near_v, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(lrn.targets(b, far_v).numpy(), r + 0.99 * ~term * boot, rtol=1e-5, atol=1e-6)
     f = ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp", "variant": "comper_f",
                                                       "qt_target_gate": True}), obs_shape=(3,), n_actions=4)
     assert not f.gates_qt and "qt_gated" not in f.update(b)

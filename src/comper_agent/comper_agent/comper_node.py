@@ -220,7 +220,8 @@ class ComperNode(AgentNode):
                 + (f"; reduce every {p.reduce_every} steps x {p.reduce_batch} sets via {self.reducer}"
                    if self.uses_memory else f"; replay {c.replay_size}")
                 + (f"; target network every {c.target_update_every} steps" if self.learner.uses_target_net else "")
-                + ("; qt_target_gate: QT's or the target network's bootstrap per batch" if self.learner.gates_qt else "")
+                + ("; qt_target_gate: QT's or the target network's bootstrap per batch (QT tested against the "
+                   f"{c.qt_gate_reference} bootstrap)" if self.learner.gates_qt else "")
                 + (f"; evaluation every {self.eval_every} steps x {p.eval_episodes} episodes" if self.eval_every else "")
                 + f"; profile {self.profile}, {self.network} Q-network, {c.optimizer} (loss {c.loss_reduction}), "
                   f"reward clip {c.reward_clip}; torch threads {c.num_threads}")

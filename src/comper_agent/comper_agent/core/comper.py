@@ -226,16 +226,19 @@ class ComperLearner:
 
     @torch.no_grad()
     def qt_gate(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
-        """``qt_target_gate``'s test on this batch: error = RMS of QT(tau) - B(s') and spread = the standard
-        deviation of B(s') (B: the target network's bootstrap), both over the non-terminal rows; gated =
-        error > spread (then the batch bootstraps from B). No non-terminal row: not gated."""
+        """``qt_target_gate``'s test on this batch: error = RMS of QT(tau) - R(s') and spread = the standard
+        deviation of R(s'), both over the non-terminal rows, where the reference R is B (the target network's
+        bootstrap) or with ``qt_gate_reference`` label V(s') (the value labels' bootstrap); gated = error >
+        spread (then the batch bootstraps from B). No non-terminal row: not gated."""
         live = self._t(batch.terminated, torch.float32) < 0.5
         if not bool(live.any()):
             return {"gated": False, "error": 0.0, "spread": 0.0, "bootstrap": None}
-        b = self._target_bootstrap(self._t(batch.next_states))
+        next_states = self._t(batch.next_states)
+        b = self._target_bootstrap(next_states)
+        ref = b if self.config.qt_gate_reference == "target" else self._label_bootstrap(next_states)
         qt = self._t(qt_targets, torch.float32).reshape(-1)
-        error = float(torch.sqrt(torch.mean((qt[live] - b[live]) ** 2)))
-        spread = float(b[live].std(unbiased=False))
+        error = float(torch.sqrt(torch.mean((qt[live] - ref[live]) ** 2)))
+        spread = float(ref[live].std(unbiased=False))
         return {"gated": error > spread, "error": error, "spread": spread, "bootstrap": b}
 
     @torch.no_grad()

@@ -269,6 +269,14 @@ class ComperConfig:
         deviation="on = QT's target only where it carries more of the state-dependent bootstrap than it loses in "
         "error; on Freeway, before the first reward, QT's error is a median 6 times that spread and the Q gap "
         "collapses (docs/comper.md, \"Why 10-step COMPER misses Freeway's road\")")
+    qt_gate_reference: str = param(
+        "target", "what qt_target_gate's test compares QT(tau) with: target = the target network's bootstrap "
+        "B(s'), error and spread as above; label = V(s'), the bootstrap the value labels are computed with "
+        "(label_network: max_a Q(s', a) of the network being trained, or the target network's), error = RMS of "
+        "QT(tau) - V(s') and spread = standard deviation of V(s') over the non-terminal rows, so that only a QT "
+        "off from what it is fitted to is gated. A gated batch bootstraps from B(s') with either",
+        thesis="none (Algorithm 7 has no gate); target is the test as first measured",
+        choices=("target", "label"))
     n_actions: int = param(0, "outputs of the Q-network; 0 = the environment's action count (an ALE game "
                            "with the full action set: 18)", thesis="18 (appendix A.4, the ALE full action set)",
                            minimum=0)
