@@ -11,7 +11,9 @@ Reads the 'qt_diagnostics' records comcact_node and comper_node write to <run di
      max-min Q gap: a policy collapsing onto one action shows here during the run.
 It also prints, per run, the medians over the second half of the run (issue #15's target compares
 qt_target_rmse with the TD error there), and for COMCACT, from the last 'progress' record, how many QT critic
-steps the run took and how many `qt_step_gate` skipped.
+steps the run took and how many `qt_step_gate` skipped. For comper_node runs with `qt_target_gate`, per half of
+the run, the share of recorded batches the gate's test sent to the target network's bootstrap, and the share
+the other `qt_gate_reference` would have sent, from the same records (see gate_shares).
 
     python benchmarks/qt_diagnostics.py runs/comcact-Hopper-v4-s0-* --out docs/results/comcact_diagnostics.png
 """
@@ -52,6 +54,38 @@ def second_half_medians(recs: list[dict]) -> dict:
     return {k: float(np.nanmedian([r.get(k, np.nan) for r in half])) for k in keys if k in half[-1]}
 
 
+def gate_discount(run: Path) -> float:
+    """The factor on a COMPER target's bootstrap: gamma^n_step where the memory holds n-step windows (comper,
+    comper_m, comper_f with n_step > 1), gamma otherwise (from the run's config.yaml)."""
+    import yaml
+    cfg = yaml.safe_load((run / "config.yaml").read_text())
+    learner = cfg["learner"]
+    windows = learner["n_step"] > 1 and learner.get("variant", cfg.get("algorithm")) != "dqn"
+    return float(learner["gamma"]) ** (learner["n_step"] if windows else 1)
+
+
+def gate_shares(recs: list[dict], discount: float) -> list[dict]:
+    """Per half of the run (agent steps before / from half the last record's step): the share of the records
+    whose batch `qt_target_gate` sent to the target network's bootstrap (qt_gate_on), and the share the label
+    test would have sent: RMS of QT(tau) - V(s') > the spread of V(s'), estimated as qt_target_rmse / discount
+    > v_next_std. qt_target_rmse is over every row, terminal rows counting as agreeing, so where a batch has
+    terminal rows the estimate is a lower bound on that test's error. Only meaningful for runs whose gate
+    tested against the target network (the default qt_gate_reference)."""
+    recs = [r for r in recs if "qt_gate_on" in r]
+    if not recs:
+        return []
+    half = recs[-1]["step"] / 2
+    out = []
+    for name, part in (("first half", [r for r in recs if r["step"] < half]),
+                       ("second half", [r for r in recs if r["step"] >= half])):
+        if part:
+            out.append({"part": name, "records": len(part),
+                        "target_test": float(np.mean([r["qt_gate_on"] for r in part])),
+                        "label_test": float(np.mean([r["qt_target_rmse"] / discount > r["v_next_std"]
+                                                     for r in part]))})
+    return out
+
+
 def td_error(rec: dict) -> float:
     """The TD error of the record's learner: COMCACT's critic, COMPER's Q-network."""
     return rec["critic_td_rmse"] if "critic_td_rmse" in rec else rec["td_rmse"]
@@ -62,6 +96,7 @@ def main(argv=None) -> int:
     ap.add_argument("runs", nargs="+", type=Path, help="run directories of comcact_node or comper_node")
     ap.add_argument("--out", type=Path, default=Path("qt_diagnostics.png"), help="the figure to write")
     args = ap.parse_args(argv)
+    runs = {r.name: r for r in args.runs}
     data = {r.name: read(r) for r in args.runs if (r / "metrics.jsonl").exists()}
     data = {k: v for k, v in data.items() if v[0]}
     if not data:
@@ -87,6 +122,9 @@ def main(argv=None) -> int:
             axes[3].plot(step, [r["q_gap_mean"] for r in recs], color=col, ls=":", label=f"{name}: max-min Q")
         med = second_half_medians(recs)
         print(f"{name}: second half medians " + ", ".join(f"{k} {v:.3g}" for k, v in med.items()))
+        for g in gate_shares(recs, gate_discount(runs[name]) if "qt_gate_on" in recs[-1] else 1.0):
+            print(f"{name}: {g['part']}, {g['records']} records: the target test gated {g['target_test']:.0%}, "
+                  f"the label test would have gated {g['label_test']:.0%}")
         if counts:
             print(f"{name}: {counts['qt_steps_taken']} QT steps in {counts['learner_updates']} updates, "
                   f"{counts['qt_steps_gated']} skipped by qt_step_gate")
