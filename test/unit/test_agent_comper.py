@@ -357,6 +357,18 @@ def test_target_labels_are_the_target_networks_bootstrap_and_leave_the_qt_target
                                                       "qt_label": "q_sa"}), obs_shape=(3,), n_actions=4)
 
 
+def _check_gate(lrn, b, close, far, spread, boot):
+    """QT = reference + 2 x spread (`far`) is gated with error 2 x spread and takes the target network's bootstrap
+    `boot`; QT = reference + 0.5 x spread (`close`) keeps its own targets."""
+    r, term = np.clip(b.rewards, -1, 1), b.terminated
+    g = lrn.qt_gate(b, far)
+    assert g["gated"] and g["error"] == pytest.approx(2.0 * spread, rel=1e-4)
+    assert g["spread"] == pytest.approx(float(spread), rel=1e-4)
+    assert not lrn.qt_gate(b, close)["gated"]
+    np.testing.assert_allclose(lrn.targets(b, close).numpy(), r + 0.99 * ~term * close, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(lrn.targets(b, far).numpy(), r + 0.99 * ~term * boot, rtol=1e-5, atol=1e-6)
+
+
 def test_qt_target_gate_takes_the_target_networks_bootstrap_only_where_qt_is_off_by_more_than_its_spread():
     """qt_target_gate (comper): per batch, error = RMS(QT(tau) - B(s')) and spread = std(B(s')) over the
     non-terminal rows, B the target network's bootstrap computed here by hand; error > spread: the targets are
@@ -382,12 +394,7 @@ def test_qt_target_gate_takes_the_target_networks_bootstrap_only_where_qt_is_off
         r = np.clip(b.rewards, -1, 1)
         close = boot + 0.5 * spread                  # error 0.5 x spread: QT's targets stay
         far = boot + 2.0 * spread                    # error 2 x spread: the target network's
-        g = lrn.qt_gate(b, far)
-        assert g["gated"] and g["error"] == pytest.approx(2.0 * spread, rel=1e-4)
-        assert g["spread"] == pytest.approx(float(spread), rel=1e-4)
-        assert not lrn.qt_gate(b, close)["gated"]
-        np.testing.assert_allclose(lrn.targets(b, close).numpy(), r + 0.99 * ~term * close, rtol=1e-5, atol=1e-6)
-        np.testing.assert_allclose(lrn.targets(b, far).numpy(), r + 0.99 * ~term * boot, rtol=1e-5, atol=1e-6)
+        _check_gate(lrn, b, close, far, spread, boot)
         diag = lrn.qt_diagnostics(b, far)
         assert diag["qt_gate_on"] == 1.0 and diag["qt_gate_spread"] == pytest.approx(float(spread), rel=1e-4)
         # the diagnostics compare QT itself with V(s') = max_a Q(s', a) (the labels' network), and the TD error
@@ -428,12 +435,7 @@ def test_qt_target_gate_takes_the_target_networks_bootstrap_only_where_qt_is_off
     near_v, far_v = v + 0.5 * spread_v, v + 2.0 * spread_v
     # near_v is off from B by more than B's spread: the target test would gate it
     assert np.sqrt(np.mean((near_v - boot)[~term] ** 2)) > boot[~term].std()
-    g = lrn.qt_gate(b, far_v)
-    assert g["gated"] and g["error"] == pytest.approx(2.0 * spread_v, rel=1e-4)
-    assert g["spread"] == pytest.approx(float(spread_v), rel=1e-4)
-    assert not lrn.qt_gate(b, near_v)["gated"]
-    np.testing.assert_allclose(lrn.targets(b, near_v).numpy(), r + 0.99 * ~term * near_v, rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(lrn.targets(b, far_v).numpy(), r + 0.99 * ~term * boot, rtol=1e-5, atol=1e-6)
+    _check_gate(lrn, b, near_v, far_v, spread_v, boot)
     f = ComperLearner(config_from_dict(ComperConfig, {"q_network": "mlp", "variant": "comper_f",
                                                       "qt_target_gate": True}), obs_shape=(3,), n_actions=4)
     assert not f.gates_qt and "qt_gated" not in f.update(b)
