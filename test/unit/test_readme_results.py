@@ -55,6 +55,7 @@ ATARI_RUNS = {
     "DQN, n_step:=10": [("data-efficient-runs", "dqn_n10")],
     "COMPER": [("data-efficient-runs", "comper")],
     "COMPER, n_step:=10": [("data-efficient-runs", "comper_n10")],
+    "COMPER, n_step:=10, qt_target_gate:=true": [("qt-gate-runs", "comperg_n10")],
     "COMPER, label_network:=target": [("label-network-target-runs", "comper_tl")],
 }
 ATARI_COLUMNS = ["random play", "best constant action", *ATARI_RUNS]
