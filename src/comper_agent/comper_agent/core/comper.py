@@ -29,8 +29,8 @@ rmsprop_dm, divides min_sq_grad by batch_size^2, which gives the identical step.
 clip(r) is ``reward_clip`` (default [-1, 1]); the memory and every report keep the raw reward.
 Value labels (what QT learns for comper, comper_m): max_a Q(s', a) of the network being trained, or with
 ``label_network`` target the target network's bootstrap above (double_dqn applies), x (1 - terminated).
-The target network (comper_f, dqn; comper and comper_m with ``label_network`` target) is copied by :meth:`ComperLearner.sync_target`, which the node
-calls every ``target_update_every`` agent steps. Epsilon counts frames (skipped ones included).
+Target network (comper_f, dqn; comper, comper_m with ``label_network`` target or ``qt_target_gate``): copied by
+:meth:`ComperLearner.sync_target` every ``target_update_every`` agent steps. Epsilon counts frames (skipped too).
 """
 from __future__ import annotations
 
@@ -226,10 +226,9 @@ class ComperLearner:
 
     @torch.no_grad()
     def qt_gate(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
-        """``qt_target_gate``'s test on this batch: error = RMS of QT(tau) - R(s') and spread = the standard
-        deviation of R(s'), both over the non-terminal rows, where the reference R is B (the target network's
-        bootstrap) or with ``qt_gate_reference`` label V(s') (the value labels' bootstrap); gated = error >
-        spread (then the batch bootstraps from B). No non-terminal row: not gated."""
+        """``qt_target_gate``'s test over the batch's non-terminal rows: error = RMS of QT(tau) - R(s'), spread =
+        std of R(s'), R = B (the target network's bootstrap) or, with ``qt_gate_reference`` label, V(s') (the
+        labels' bootstrap); gated = error > spread (the batch then bootstraps from B). No such row: not gated."""
         live = self._t(batch.terminated, torch.float32) < 0.5
         if not bool(live.any()):
             return {"gated": False, "error": 0.0, "spread": 0.0, "bootstrap": None}
