@@ -12,8 +12,8 @@ Reads the 'qt_diagnostics' records comcact_node and comper_node write to <run di
 It also prints, per run, the medians over the second half of the run (issue #15's target compares
 qt_target_rmse with the TD error there), and for COMCACT, from the last 'progress' record, how many QT critic
 steps the run took and how many `qt_step_gate` skipped. For comper_node runs with `qt_target_gate`, per half of
-the run, the share of recorded batches the gate's test sent to the target network's bootstrap, and the share
-the other `qt_gate_reference` would have sent, from the same records (see gate_shares).
+the run, the share of recorded batches the gate's test sent to the target network's bootstrap, and where that
+test was the default target test, the share the label test would have sent, from the same records (gate_shares).
 
     python benchmarks/qt_diagnostics.py runs/comcact-Hopper-v4-s0-* --out docs/results/comcact_diagnostics.png
 """
@@ -54,23 +54,28 @@ def second_half_medians(recs: list[dict]) -> dict:
     return {k: float(np.nanmedian([r.get(k, np.nan) for r in half])) for k in keys if k in half[-1]}
 
 
-def gate_discount(run: Path) -> float:
-    """The factor on a COMPER target's bootstrap: gamma^n_step where the memory holds n-step windows (comper,
-    comper_m, comper_f with n_step > 1), gamma otherwise (from the run's config.yaml)."""
+def learner_config(run: Path):
+    """The comper_node run's learner config (ComperConfig or DQNConfig) from its config.yaml."""
     import yaml
-    cfg = yaml.safe_load((run / "config.yaml").read_text())
-    learner = cfg["learner"]
-    windows = learner["n_step"] > 1 and learner.get("variant", cfg.get("algorithm")) != "dqn"
-    return float(learner["gamma"]) ** (learner["n_step"] if windows else 1)
+    from comper_agent.core.config import ComperConfig, DQNConfig
+    from comper_msgs_py.params import config_from_dict
+    learner = yaml.safe_load((run / "config.yaml").read_text())["learner"]
+    return config_from_dict(DQNConfig if learner["variant"] == "dqn" else ComperConfig, learner)
+
+
+def gate_discount(c) -> float:
+    """The factor on a COMPER target's bootstrap under learner config `c`: gamma^n_step where the learner
+    samples stored n-step windows (ComperConfig.window_rewards), gamma otherwise."""
+    return c.gamma ** (c.n_step if c.window_rewards else 1)
 
 
 def gate_shares(recs: list[dict], discount: float) -> list[dict]:
-    """Per half of the run (agent steps before / from half the last record's step): the share of the records
-    whose batch `qt_target_gate` sent to the target network's bootstrap (qt_gate_on), and the share the label
-    test would have sent: RMS of QT(tau) - V(s') > the spread of V(s'), estimated as qt_target_rmse / discount
-    > v_next_std. qt_target_rmse is over every row, terminal rows counting as agreeing, so where a batch has
-    terminal rows the estimate is a lower bound on that test's error. Only meaningful for runs whose gate
-    tested against the target network (the default qt_gate_reference)."""
+    """Per half of the run (agent steps before / from half the last record's step): `gated`, the share of the
+    records whose batch `qt_target_gate` sent to the target network's bootstrap (qt_gate_on, the run's own
+    test), and `label_test`, the share the label test would have sent: RMS of QT(tau) - V(s') > the spread of
+    V(s'), estimated as qt_target_rmse / discount > v_next_std. qt_target_rmse is over every row, terminal rows
+    counting as agreeing, so where a batch has terminal rows the estimate is a lower bound on that test's
+    error. For a run whose own test was the label test (qt_gate_reference label) `gated` is that test."""
     recs = [r for r in recs if "qt_gate_on" in r]
     if not recs:
         return []
@@ -80,7 +85,7 @@ def gate_shares(recs: list[dict], discount: float) -> list[dict]:
                        ("second half", [r for r in recs if r["step"] >= half])):
         if part:
             out.append({"part": name, "records": len(part),
-                        "target_test": float(np.mean([r["qt_gate_on"] for r in part])),
+                        "gated": float(np.mean([r["qt_gate_on"] for r in part])),
                         "label_test": float(np.mean([r["qt_target_rmse"] / discount > r["v_next_std"]
                                                      for r in part]))})
     return out
@@ -122,9 +127,13 @@ def main(argv=None) -> int:
             axes[3].plot(step, [r["q_gap_mean"] for r in recs], color=col, ls=":", label=f"{name}: max-min Q")
         med = second_half_medians(recs)
         print(f"{name}: second half medians " + ", ".join(f"{k} {v:.3g}" for k, v in med.items()))
-        for g in gate_shares(recs, gate_discount(runs[name]) if "qt_gate_on" in recs[-1] else 1.0):
-            print(f"{name}: {g['part']}, {g['records']} records: the target test gated {g['target_test']:.0%}, "
-                  f"the label test would have gated {g['label_test']:.0%}")
+        if "qt_gate_on" in recs[-1]:
+            c = learner_config(runs[name])
+            for g in gate_shares(recs, gate_discount(c)):
+                other = (f", the label test would have gated {g['label_test']:.0%}"
+                         if c.qt_gate_reference == "target" else "")
+                print(f"{name}: {g['part']}, {g['records']} records: the {c.qt_gate_reference} test gated "
+                      f"{g['gated']:.0%}{other}")
         if counts:
             print(f"{name}: {counts['qt_steps_taken']} QT steps in {counts['learner_updates']} updates, "
                   f"{counts['qt_steps_gated']} skipped by qt_step_gate")

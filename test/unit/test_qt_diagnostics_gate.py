@@ -20,8 +20,8 @@ def test_gate_shares_split_the_run_in_halves_and_apply_the_label_test_to_each_re
     out = diag.gate_shares(recs, d)
     assert [g["part"] for g in out] == ["first half", "second half"]
     assert [g["records"] for g in out] == [1, 3]                  # half = step 200: 100 | 200, 300, 400
-    assert out[0]["target_test"] == 1.0 and out[0]["label_test"] == 1.0
-    assert out[1]["target_test"] == pytest.approx(2 / 3) and out[1]["label_test"] == pytest.approx(1 / 3)
+    assert out[0]["gated"] == 1.0 and out[0]["label_test"] == 1.0
+    assert out[1]["gated"] == pytest.approx(2 / 3) and out[1]["label_test"] == pytest.approx(1 / 3)
     assert diag.gate_shares([{"step": 1, "qt_target_rmse": 0.1, "v_next_std": 0.0}], d) == []   # no gate
 
 
@@ -30,4 +30,4 @@ def test_gate_discount_is_gamma_to_the_windows_length_for_comper_variants(tmp_pa
     for alg, n, want in (("comper", 10, 0.99 ** 10), ("comper", 1, 0.99), ("dqn", 10, 0.99)):
         (tmp_path / "config.yaml").write_text(f"algorithm: {alg}\nlearner:\n  gamma: 0.99\n  n_step: {n}\n"
                                               f"  variant: {alg}\n")
-        assert diag.gate_discount(tmp_path) == pytest.approx(want)
+        assert diag.gate_discount(diag.learner_config(tmp_path)) == pytest.approx(want)

@@ -161,9 +161,7 @@ class ComperLearner:
         self.rng = np.random.default_rng(c.seed)
         self.updates = 0
         self.qt_gated = 0     # updates whose batch qt_target_gate sent to the target network's bootstrap
-        # the COMPER variants with n_step > 1 sample stored n-step windows (memory_schedule.NStepWindows):
-        # their rewards are already clipped and discounted, their bootstrap is n steps on
-        self.window_rewards = c.n_step > 1 and c.variant != "dqn"
+        self.window_rewards = c.window_rewards      # stored n-step windows (ComperConfig.window_rewards)
 
     def _t(self, x, dtype=None) -> torch.Tensor:
         return torch.as_tensor(np.asarray(x), dtype=dtype, device=self.device)

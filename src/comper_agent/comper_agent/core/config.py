@@ -359,6 +359,13 @@ class ComperConfig:
     num_threads: int = param(2, "torch intra-op threads, set by the entry point", minimum=1)
     seed: int = param(0, "seed of network initialisation, exploration and replay sampling", minimum=0)
 
+    @property
+    def window_rewards(self) -> bool:
+        """Whether the learner samples stored n-step windows (a COMPER variant with n_step > 1,
+        memory_schedule.NStepWindows): their rewards are already clipped and discounted and their bootstrap is
+        n steps on, discounted by gamma^n_step. dqn forms its windows from the replay at sampling time."""
+        return self.n_step > 1 and self.variant != "dqn"
+
 
 @dataclass(frozen=True)
 class DQNConfig(ComperConfig):
