@@ -161,7 +161,6 @@ class ComperLearner:
         self.rng = np.random.default_rng(c.seed)
         self.updates = 0
         self.qt_gated = 0     # updates whose batch qt_target_gate sent to the target network's bootstrap
-        self.window_rewards = c.window_rewards      # stored n-step windows (ComperConfig.window_rewards)
 
     def _t(self, x, dtype=None) -> torch.Tensor:
         return torch.as_tensor(np.asarray(x), dtype=dtype, device=self.device)
@@ -254,7 +253,7 @@ class ComperLearner:
         gate=False: the targets with `qt_targets` as the bootstrap whatever the gate would decide (diagnostics
         that compare bootstraps)."""
         c = self.config
-        if self.window_rewards:
+        if c.window_rewards:            # stored n-step windows
             if n_step is not None:
                 raise ValueError("stored n-step windows take no replay windows")
             r = self._t(batch.rewards, torch.float32)
