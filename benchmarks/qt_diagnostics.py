@@ -13,7 +13,9 @@ It also prints, per run, the medians over the second half of the run (issue #15'
 qt_target_rmse with the TD error there), and for COMCACT, from the last 'progress' record, how many QT critic
 steps the run took and how many `qt_step_gate` skipped. For comper_node runs with `qt_target_gate`, per half of
 the run, the share of recorded batches the gate's test sent to the target network's bootstrap, and where that
-test was the default target test, the share the label test would have sent, from the same records (gate_shares).
+test was the default target test, the share the label test would have sent, from the same records (gate_shares);
+and per half, the share of all updates the gate sent there, from the progress records' cumulative
+qt_gated_share (gated_update_halves).
 
     python benchmarks/qt_diagnostics.py runs/comcact-Hopper-v4-s0-* --out docs/results/comcact_diagnostics.png
 """
@@ -91,6 +93,40 @@ def gate_shares(recs: list[dict], discount: float) -> list[dict]:
     return out
 
 
+def gated_progress(run: Path) -> list[dict]:
+    """The run's progress records that carry qt_gated_share (comper_node with qt_target_gate), on the run's
+    final timeline: where a resumed run re-wrote steps its checkpoint had rolled back, the later records
+    replace the earlier ones."""
+    out: list[dict] = []
+    with open(run / "metrics.jsonl") as f:
+        for line in f:
+            if '"qt_gated_share"' not in line:
+                continue
+            rec = json.loads(line)
+            if rec.get("kind") != "progress" or not rec.get("updates"):
+                continue
+            while out and out[-1]["step"] >= rec["step"]:
+                out.pop()
+            out.append(rec)
+    return out
+
+
+def gated_update_halves(progress: list[dict]) -> list[dict]:
+    """Per half of the run, the share of all updates (not only the recorded batches) that qt_target_gate sent
+    to the target network's bootstrap, from the cumulative counts in the progress records (updates x
+    qt_gated_share): up to the record nearest half the last record's step, and from there to the end."""
+    if len(progress) < 2:
+        return []
+    end = progress[-1]
+    mid = min(progress[:-1], key=lambda r: abs(r["step"] - end["step"] / 2))
+    g_mid, g_end = mid["updates"] * mid["qt_gated_share"], end["updates"] * end["qt_gated_share"]
+    out = [{"part": "first half", "to_step": mid["step"], "updates": mid["updates"], "gated": g_mid / mid["updates"]}]
+    if end["updates"] > mid["updates"]:
+        out.append({"part": "second half", "to_step": end["step"], "updates": end["updates"] - mid["updates"],
+                    "gated": (g_end - g_mid) / (end["updates"] - mid["updates"])})
+    return out
+
+
 def td_error(rec: dict) -> float:
     """The TD error of the record's learner: COMCACT's critic, COMPER's Q-network."""
     return rec["critic_td_rmse"] if "critic_td_rmse" in rec else rec["td_rmse"]
@@ -134,6 +170,9 @@ def main(argv=None) -> int:
                          if c.qt_gate_reference == "target" else "")
                 print(f"{name}: {g['part']}, {g['records']} records: the {c.qt_gate_reference} test gated "
                       f"{g['gated']:.0%}{other}")
+            for g in gated_update_halves(gated_progress(runs[name])):
+                print(f"{name}: {g['part']} (to step {g['to_step']}), {g['updates']} updates: the "
+                      f"{c.qt_gate_reference} test gated {g['gated']:.0%} of the updates")
         if counts:
             print(f"{name}: {counts['qt_steps_taken']} QT steps in {counts['learner_updates']} updates, "
                   f"{counts['qt_steps_gated']} skipped by qt_step_gate")

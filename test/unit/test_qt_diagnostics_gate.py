@@ -31,3 +31,25 @@ def test_gate_discount_is_gamma_to_the_windows_length_for_comper_variants(tmp_pa
         (tmp_path / "config.yaml").write_text(f"algorithm: {alg}\nlearner:\n  gamma: 0.99\n  n_step: {n}\n"
                                               f"  variant: {alg}\n")
         assert diag.gate_discount(diag.learner_config(tmp_path)) == pytest.approx(want)
+
+
+def test_gated_update_halves_split_the_cumulative_counts_on_the_runs_final_timeline(tmp_path):
+    """Progress records carry the cumulative share; the halves come from updates x share at the record nearest
+    half the last step and at the end. A resumed run's re-written steps replace the rolled-back records."""
+    import json
+    diag = load_benchmark("qt_diagnostics")
+    rows = [  # step, updates, cumulative share
+        (100, 100, 0.9), (200, 200, 0.8), (300, 300, 0.6),
+        (250, 250, 0.7),                                  # resumed from a checkpoint at step 240: 300 rolled back
+        (400, 400, 0.5),
+    ]
+    lines = [json.dumps({"kind": "progress", "step": s, "updates": u, "qt_gated_share": g}) for s, u, g in rows]
+    lines.insert(1, json.dumps({"kind": "qt_diagnostics", "step": 150, "qt_gate_on": 1.0}))
+    (tmp_path / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+    progress = diag.gated_progress(tmp_path)
+    assert [r["step"] for r in progress] == [100, 200, 250, 400]
+    first, second = diag.gated_update_halves(progress)
+    assert first["to_step"] == 200 and first["updates"] == 200 and first["gated"] == pytest.approx(0.8)
+    # gated updates: 160 by step 200, 200 by step 400 -> 40 of the second half's 200
+    assert second["updates"] == 200 and second["gated"] == pytest.approx(0.2)
+    assert diag.gated_update_halves(progress[:1]) == []
