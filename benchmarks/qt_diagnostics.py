@@ -119,7 +119,7 @@ def gated_update_halves(progress: list[dict]) -> list[dict]:
         return []
     end = progress[-1]
     mid = min(progress[:-1], key=lambda r: abs(r["step"] - end["step"] / 2))
-    g_mid, g_end = mid["updates"] * mid["qt_gated_share"], end["updates"] * end["qt_gated_share"]
+    g_mid, g_end = (round(r["updates"] * r["qt_gated_share"]) for r in (mid, end))   # whole updates
     out = [{"part": "first half", "to_step": mid["step"], "updates": mid["updates"], "gated": g_mid / mid["updates"]}]
     if end["updates"] > mid["updates"]:
         out.append({"part": "second half", "to_step": end["step"], "updates": end["updates"] - mid["updates"],
