@@ -173,10 +173,10 @@ def resumed_evals(evals: list[dict]) -> list[dict]:
     """A run's evaluation records in step order, as its last session saw them: a session resumed from a checkpoint
     older than evaluations the killed session had logged evaluates those steps again, and its records replace
     them (with the weights the run went on from)."""
-    return _went_on_with(evals, "step")
+    return went_on_with(evals, "step")
 
 
-def _went_on_with(records: list[dict], key: str) -> list[dict]:
+def went_on_with(records: list[dict], key: str) -> list[dict]:
     """Records in file order, each dropping the earlier ones whose `key` is not below its own (a resumed session
     logging again what a stopped one had logged)."""
     out: list[dict] = []
@@ -192,7 +192,7 @@ def resumed_episodes(episodes: list[dict]) -> list[dict]:
     again from the checkpoint's count, so records the killed session had logged with that index or a later one
     belong to steps that were played again, and are dropped (an episode's end step cannot tell them apart: the
     replayed episodes end later than the dropped ones)."""
-    return _went_on_with(episodes, "episode")
+    return went_on_with(episodes, "episode")
 
 
 def run_timers(records: list[dict]) -> dict | None:

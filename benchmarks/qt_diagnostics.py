@@ -28,6 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from comper_agent.run_io import MetricsLog
+from learning_bench import went_on_with   # the benches' rule for a resumed run's records
+
 
 def read(run: Path) -> tuple[list[dict], dict | None]:
     """The run's qt_diagnostics records, and its last progress record's learner_updates, qt_steps_taken and
@@ -96,19 +99,9 @@ def gate_shares(recs: list[dict], discount: float) -> list[dict]:
 def gated_progress(run: Path) -> list[dict]:
     """The run's progress records that carry qt_gated_share (comper_node with qt_target_gate), on the run's
     final timeline: where a resumed run re-wrote steps its checkpoint had rolled back, the later records
-    replace the earlier ones."""
-    out: list[dict] = []
-    with open(run / "metrics.jsonl") as f:
-        for line in f:
-            if '"qt_gated_share"' not in line:
-                continue
-            rec = json.loads(line)
-            if rec.get("kind") != "progress" or not rec.get("updates"):
-                continue
-            while out and out[-1]["step"] >= rec["step"]:
-                out.pop()
-            out.append(rec)
-    return out
+    replace the earlier ones (learning_bench.went_on_with, the rule the benches apply to evaluations)."""
+    recs = MetricsLog.read(run / "metrics.jsonl", "progress")
+    return went_on_with([r for r in recs if "qt_gated_share" in r and r.get("updates")], "step")
 
 
 def gated_update_halves(progress: list[dict]) -> list[dict]:
