@@ -32,21 +32,18 @@ from comper_agent.run_io import MetricsLog
 from learning_bench import went_on_with   # the benches' rule for a resumed run's records
 
 
-def read(run: Path) -> tuple[list[dict], dict | None]:
-    """The run's qt_diagnostics records, and its last progress record's learner_updates, qt_steps_taken and
-    qt_steps_gated (None if no progress record has them)."""
-    out, last = [], None
-    with open(run / "metrics.jsonl") as f:
-        for line in f:
-            if '"qt_diagnostics"' in line:
-                rec = json.loads(line)
-                if rec.get("kind") == "qt_diagnostics":
-                    out.append(rec)
-            elif '"qt_steps_taken"' in line:
-                last = json.loads(line)
+def read(run: Path) -> tuple[list[dict], dict | None, list[dict]]:
+    """One pass over the run's metrics.jsonl: its qt_diagnostics records on the run's final timeline (where a
+    resumed run logged again steps its checkpoint had rolled back, the later records replace the earlier ones:
+    learning_bench.went_on_with, the benches' rule for evaluations), its last record's learner_updates,
+    qt_steps_taken and qt_steps_gated (None if no record has them), and its gated progress records
+    (:func:`gated_progress`)."""
+    recs = MetricsLog.read(run / "metrics.jsonl")
+    diag = went_on_with([r for r in recs if r.get("kind") == "qt_diagnostics"], "step")
+    last = next((r for r in reversed(recs) if "qt_steps_taken" in r), None)
     keys = ("learner_updates", "qt_steps_taken", "qt_steps_gated")
     counts = None if last is None else {k: int(last[k]) for k in keys}
-    return out, counts
+    return diag, counts, gated_progress(recs)
 
 
 def second_half_medians(recs: list[dict]) -> dict:
@@ -96,12 +93,11 @@ def gate_shares(recs: list[dict], discount: float) -> list[dict]:
     return out
 
 
-def gated_progress(run: Path) -> list[dict]:
-    """The run's progress records that carry qt_gated_share (comper_node with qt_target_gate), on the run's
-    final timeline: where a resumed run re-wrote steps its checkpoint had rolled back, the later records
-    replace the earlier ones (learning_bench.went_on_with, the rule the benches apply to evaluations)."""
-    recs = MetricsLog.read(run / "metrics.jsonl", "progress")
-    return went_on_with([r for r in recs if "qt_gated_share" in r and r.get("updates")], "step")
+def gated_progress(recs: list[dict]) -> list[dict]:
+    """Of a run's metrics records, the progress records that carry qt_gated_share (comper_node with
+    qt_target_gate), on the run's final timeline (a resumed run's later records replace the rolled-back ones)."""
+    return went_on_with([r for r in recs if r.get("kind") == "progress" and "qt_gated_share" in r
+                         and r.get("updates")], "step")
 
 
 def gated_update_halves(progress: list[dict]) -> list[dict]:
@@ -140,9 +136,9 @@ def main(argv=None) -> int:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    policy = any("greedy_top_share" in recs[0] for recs, _ in data.values())
+    policy = any("greedy_top_share" in recs[0] for recs, _, _ in data.values())
     fig, axes = plt.subplots(1, 4 if policy else 3, figsize=(20 if policy else 15, 4))
-    for i, (name, (recs, counts)) in enumerate(sorted(data.items())):
+    for i, (name, (recs, counts, progress)) in enumerate(sorted(data.items())):
         col = f"C{i}"
         step = [r["step"] for r in recs]
         axes[0].plot(step, [r["qt_target_rmse"] for r in recs], color=col, label=f"{name}: QT vs own target")
@@ -163,7 +159,7 @@ def main(argv=None) -> int:
                          if c.qt_gate_reference == "target" else "")
                 print(f"{name}: {g['part']}, {g['records']} records: the {c.qt_gate_reference} test gated "
                       f"{g['gated']:.0%}{other}")
-            for g in gated_update_halves(gated_progress(runs[name])):
+            for g in gated_update_halves(progress):
                 print(f"{name}: {g['part']} (to step {g['to_step']}), {g['updates']} updates: the "
                       f"{c.qt_gate_reference} test gated {g['gated']:.0%} of the updates")
         if counts:

@@ -35,7 +35,8 @@ def test_gate_discount_is_gamma_to_the_windows_length_for_comper_variants(tmp_pa
 
 def test_gated_update_halves_split_the_cumulative_counts_on_the_runs_final_timeline(tmp_path):
     """Progress records carry the cumulative share; the halves come from updates x share at the record nearest
-    half the last step and at the end. A resumed run's re-written steps replace the rolled-back records."""
+    half the last step and at the end. A resumed run's re-written steps replace the rolled-back records, the
+    diagnostics records' as well as the progress records'."""
     import json
     diag = load_benchmark("qt_diagnostics")
     rows = [  # step, updates, cumulative share
@@ -44,10 +45,12 @@ def test_gated_update_halves_split_the_cumulative_counts_on_the_runs_final_timel
         (400, 400, 0.5),
     ]
     lines = [json.dumps({"kind": "progress", "step": s, "updates": u, "qt_gated_share": g}) for s, u, g in rows]
-    lines.insert(1, json.dumps({"kind": "qt_diagnostics", "step": 150, "qt_gate_on": 1.0}))
+    for at, step in ((4, 260), (3, 280), (1, 150)):   # 280 logged before the resume, rolled back by it
+        lines.insert(at, json.dumps({"kind": "qt_diagnostics", "step": step, "qt_gate_on": 1.0}))
     (tmp_path / "metrics.jsonl").write_text("\n".join(lines) + "\n")
-    progress = diag.gated_progress(tmp_path)
+    diagnostics, counts, progress = diag.read(tmp_path)
     assert [r["step"] for r in progress] == [100, 200, 250, 400]
+    assert [r["step"] for r in diagnostics] == [150, 260] and counts is None
     first, second = diag.gated_update_halves(progress)
     assert first["to_step"] == 200 and first["updates"] == 200 and first["gated"] == pytest.approx(0.8)
     # gated updates: 160 by step 200, 200 by step 400 -> 40 of the second half's 200
