@@ -22,7 +22,6 @@ qt_gated_share (gated_update_halves).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
