@@ -116,10 +116,6 @@ def spin_once(node, timeout: float = 0.1) -> None:
     node.test_executor.spin_once(timeout_sec=timeout)
 
 
-#: requests whose repetition is harmless: a store the memory recognises by its request id, and reads
-RESENDABLE = ("comper_msgs.srv.Store_Request", "comper_msgs.srv.Sample_Request", "comper_msgs.srv.GetStats_Request")
-
-
 def call(node, client, request, timeout: float = 30.0, resend_s: float = 2.0):
     """Call a service from the test thread, spinning `node` until the response (or fail).
 
@@ -129,8 +125,9 @@ def call(node, client, request, timeout: float = 30.0, resend_s: float = 2.0):
     so the memory applies it once. Other requests are sent once."""
     if not client.wait_for_service(timeout_sec=timeout):
         pytest.fail(f"service {client.srv_name} did not appear within {timeout} s")
-    kind = f"{type(request).__module__.rsplit('._', 1)[0]}.{type(request).__name__}"
-    resend = kind in RESENDABLE and 0 < resend_s < timeout
+    from comper_msgs.srv import GetStats, Sample, Store
+    # requests whose repetition is harmless: a store the memory recognises by its request id, and reads
+    resend = isinstance(request, (Store.Request, Sample.Request, GetStats.Request)) and 0 < resend_s < timeout
     if resend and hasattr(request, "request_id") and not request.request_id:
         from comper_memory.client import new_request_id
         request.request_id = new_request_id()
