@@ -120,28 +120,31 @@ def call(node, client, request, timeout: float = 30.0, resend_s: float = 2.0):
     """Call a service from the test thread, spinning `node` until the response (or fail).
 
     A store, sample or stats request without an answer after resend_s seconds is sent again, as MemoryClient
-    does (the first call of a new client can lose its answer while the server's side of discovery completes,
-    docs/memory-service.md "Lost answers and re-sends"); a store without a request id gets a fresh one first,
-    so the memory applies it once. Other requests are sent once."""
+    does, through the same loop (service_client.resend_until_answered; the first call of a new client can lose
+    its answer while the server's side of discovery completes, docs/memory-service.md "Lost answers and
+    re-sends"); a store without a request id gets a fresh one first, so the memory applies it once. Other
+    requests are sent once."""
     if not client.wait_for_service(timeout_sec=timeout):
         pytest.fail(f"service {client.srv_name} did not appear within {timeout} s")
     from comper_msgs.srv import GetStats, Sample, Store
+    from comper_msgs_py.service_client import resend_until_answered
     # requests whose repetition is harmless: a store the memory recognises by its request id, and reads
-    resend = isinstance(request, (Store.Request, Sample.Request, GetStats.Request)) and 0 < resend_s < timeout
+    resend = isinstance(request, (Store.Request, Sample.Request, GetStats.Request))
     if resend and hasattr(request, "request_id") and not request.request_id:
         from comper_memory.client import new_request_id
         request.request_id = new_request_id()
-    deadline = time.monotonic() + timeout
-    futures = [client.call_async(request)]
-    while True:
-        left = deadline - time.monotonic()
-        if left <= 0:
-            pytest.fail(f"service {client.srv_name} did not answer within {timeout} s "
-                        f"(sent {len(futures)} time(s))")
-        node.test_executor.spin_until_future_complete(futures[-1], timeout_sec=min(resend_s, left) if resend
-                                                      else left)
-        done = [f for f in futures if f.done()]
-        if done:
-            return done[0].result()
-        if resend and deadline - time.monotonic() > 0:
-            futures.append(client.call_async(request))
+
+    def spin(futures, seconds):
+        end = time.monotonic() + seconds
+        while not any(f.done() for f in futures) and (left := end - time.monotonic()) > 0:
+            node.test_executor.spin_once(timeout_sec=min(left, 0.05))
+
+    answered, futures = resend_until_answered(lambda: client.call_async(request), spin, timeout,
+                                              resend_s if resend else 0.0)
+    for f in futures:
+        if f is not answered:
+            client.remove_pending_request(f)
+            f.cancel()
+    if answered is None:
+        pytest.fail(f"service {client.srv_name} did not answer within {timeout} s (sent {len(futures)} time(s))")
+    return answered.result()

@@ -81,3 +81,97 @@ def test_the_sim_clients_info_is_sent_again_when_its_answer_is_lost():
     sim.INFO_RESEND_S = 0.3
     sim.info()
     assert node.clients["sim_node/info"].calls == 2 and sim.resent == 1
+
+
+class LateClient(DroppingClient):
+    """An rclpy client that answers nothing by itself: the test answers its futures (from another thread)."""
+
+    def __init__(self, srv_type, name):
+        super().__init__(srv_type, name, drop=10**9)
+        self.futures, self.removed = [], []
+
+    def call_async(self, request):
+        f = super().call_async(request)
+        self.futures.append(f)
+        return f
+
+    def remove_pending_request(self, future):
+        self.removed.append(future)
+
+
+def test_a_late_answer_to_the_first_send_ends_the_wait_and_the_other_sends_are_dropped():
+    """Under load an answer can come after resend_s: it is the call's answer, not discarded for the re-send's
+    (the re-send loop used to cancel each send before the next, so a server that always took longer than
+    resend_s was never heard)."""
+    import threading
+
+    node = Node()
+    node.create_client = lambda srv_type, name, qos_profile=None, callback_group=None: \
+        node.clients.setdefault(name, LateClient(srv_type, name))
+    memory = MemoryClient(node, "memory_node", timeout=10.0, resend_s=0.2)
+    client = node.clients["memory_node/get_stats"]
+
+    def answer_the_first_late():
+        while len(client.futures) < 3:        # two re-sends went out without an answer
+            time.sleep(0.01)
+        resp = GetStats.Response()
+        resp.stats.transitions_stored = 11
+        client.futures[0].set_result(resp)
+
+    t = threading.Thread(target=answer_the_first_late)
+    t.start()
+    t0 = time.monotonic()
+    assert memory.stats()["transitions_stored"] == 11
+    t.join()
+    assert time.monotonic() - t0 < 3.0
+    assert memory.resent == len(client.futures) - 1 >= 2
+    assert client.futures[0] not in client.removed
+    assert set(client.removed) == set(client.futures[1:]) and all(f.cancelled() for f in client.futures[1:])
+
+
+def test_resend_until_answered_sends_every_resend_s_and_gives_up_at_the_timeout():
+    from comper_msgs_py.service_client import resend_until_answered
+
+    sent = []
+
+    def send():
+        sent.append(Future())
+        return sent[-1]
+
+    answered, futures = resend_until_answered(send, lambda fs, s: time.sleep(s), timeout=0.55, resend_s=0.2)
+    assert answered is None and futures == sent and len(sent) == 3      # at 0, 0.2 and 0.4 s
+    sent.clear()
+    answered, futures = resend_until_answered(send, lambda fs, s: time.sleep(s), timeout=0.3, resend_s=0.0)
+    assert answered is None and len(sent) == 1                           # resend_s 0: one send
+
+    def send_answered_on_the_second():
+        f = send()
+        if len(sent) == 2:
+            f.set_result("ok")
+        return f
+    sent.clear()
+    answered, futures = resend_until_answered(send_answered_on_the_second, lambda fs, s: time.sleep(s),
+                                              timeout=5.0, resend_s=0.05)
+    assert answered is sent[1] and len(futures) == 2 and answered.result() == "ok"
+
+
+def test_a_stop_ends_a_re_sending_call_whose_server_left_and_drops_every_send():
+    import threading
+
+    import pytest
+
+    from comper_msgs_py.service_client import ServiceUnavailable
+
+    node = Node()
+    node.create_client = lambda srv_type, name, qos_profile=None, callback_group=None: \
+        node.clients.setdefault(name, LateClient(srv_type, name))
+    memory = MemoryClient(node, "memory_node", timeout=30.0, resend_s=0.2)
+    client = node.clients["memory_node/get_stats"]
+    client.service_is_ready = lambda: False        # the memory node has left the graph
+    memory.stop = threading.Event()
+    memory.stop.set()
+    t0 = time.monotonic()
+    with pytest.raises(ServiceUnavailable):
+        memory.stats()
+    assert time.monotonic() - t0 < 5.0
+    assert client.futures and set(client.removed) == set(client.futures)

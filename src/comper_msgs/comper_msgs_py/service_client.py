@@ -25,7 +25,7 @@ import time
 from .qos import SERVICE_QOS
 
 __all__ = ["ServiceError", "ServiceUnavailable", "ServiceTimeout", "NoAnswer", "ServiceRefused", "PendingCall", "call",
-           "wait_for_services", "ServiceClient"]
+           "resend_until_answered", "wait_for_services", "ServiceClient"]
 
 
 class ServiceError(RuntimeError):
@@ -66,16 +66,19 @@ class PendingCall:
     """A service call in flight, made from a thread that does not spin the node: ``done()`` polls,
     ``result(timeout)`` waits for the answer."""
 
-    def __init__(self, client, request, what: str | None = None, *, refused: type = ServiceRefused):
+    def __init__(self, client, request, what: str | None = None, *, refused: type = ServiceRefused,
+                 woken: threading.Event | None = None):
+        """woken: an event that this call's answer sets, shared by several sends of one request
+        (``ServiceClient._call``); by default the call's own."""
         self.client = client
         self.name = what or client.srv_name
         self.refused = refused
-        self._done = threading.Event()
+        self._done = threading.Event() if woken is None else woken
         self.future = client.call_async(request)
         self.future.add_done_callback(_waker(self._done))
 
     def done(self) -> bool:
-        return self._done.is_set()
+        return self.future.done()
 
     #: after a stop request, how long the server may be missing from the graph before the wait ends
     GONE_S = 1.0
@@ -91,8 +94,7 @@ class PendingCall:
             if not self._wait(timeout, stop):
                 raise NoAnswer(f"{name}: no answer within {timeout:g} s (is the node still running?)")
         except (NoAnswer, ServiceUnavailable):
-            self.client.remove_pending_request(future)
-            future.cancel()
+            self.abandon()
             raise
         if future.cancelled():
             raise ServiceTimeout(f"{name}: the call was cancelled (shutting down?)")
@@ -106,10 +108,18 @@ class PendingCall:
             raise self.refused(name, response.message)
         return response
 
-    def _wait(self, timeout: float, stop: threading.Event | None) -> bool:
+    def abandon(self) -> None:
+        """Stop waiting for this call: its answer, should it still come, is dropped."""
+        self.client.remove_pending_request(self.future)
+        self.future.cancel()
+
+    def _wait(self, timeout: float, stop: threading.Event | None, gone: list | None = None) -> bool:
+        """Wait until the (shared) wake event is set, at most ``timeout`` s; see :meth:`result` for stop.
+        gone: a one-item list holding since when the server has been missing (None: there), kept across the
+        waits of several sends of one request (``ServiceClient._call``), so short waits still add up to GONE_S."""
         if stop is None:
             return self._done.wait(timeout)
-        deadline, gone_since = time.monotonic() + timeout, None
+        deadline, gone = time.monotonic() + timeout, [None] if gone is None else gone
         while True:
             left = deadline - time.monotonic()
             if left <= 0:
@@ -117,10 +127,10 @@ class PendingCall:
             if self._done.wait(min(left, 0.2)):
                 return True
             if not stop.is_set() or self.client.service_is_ready():
-                gone_since = None
-            elif gone_since is None:
-                gone_since = time.monotonic()
-            elif time.monotonic() - gone_since >= self.GONE_S:
+                gone[0] = None
+            elif gone[0] is None:
+                gone[0] = time.monotonic()
+            elif time.monotonic() - gone[0] >= self.GONE_S:
                 raise ServiceUnavailable(f"{self.name}: the server left while this call waited for its answer, "
                                          "after a stop was requested")
 
@@ -130,6 +140,31 @@ def call(client, request, timeout: float = 60.0, *, what: str | None = None, che
 
     check: raise ServiceRefused when the response has ``success == False`` (with its message)."""
     return PendingCall(client, request, what).result(timeout, check=check)
+
+
+def resend_until_answered(send, wait, timeout: float, resend_s: float) -> tuple:
+    """Send a request, and send it again each time ``resend_s`` seconds pass without an answer to any send
+    of it, until one is answered or ``timeout`` seconds are over. Every send's answer counts: a late answer
+    to the first one ends the wait as well as an answer to the last.
+
+    send() makes one call and returns its future; wait(futures, seconds) returns once one of ``futures`` is
+    done or ``seconds`` have passed (it may raise to end the wait). resend_s <= 0 or >= timeout: one send.
+    Returns (the first answered future or None when the timeout ran out, every future sent); the caller drops
+    the others. Only for requests whose repetition is harmless (reads, or stores the server recognises by a
+    request id)."""
+    resend = 0 < resend_s < timeout
+    deadline = time.monotonic() + timeout
+    futures = [send()]
+    while True:
+        answered = next((f for f in futures if f.done()), None)
+        if answered is not None:
+            return answered, futures
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return None, futures
+        wait(futures, min(resend_s, left) if resend else left)
+        if resend and not any(f.done() for f in futures) and deadline - time.monotonic() > 0:
+            futures.append(send())
 
 
 def wait_for_services(clients: dict, timeout: float, hints: dict | None = None,
@@ -264,22 +299,39 @@ class ServiceClient:
               resend_s: float = 0.0):
         """One call; resend_s > 0: a request without an answer after resend_s seconds is sent again (only for
         requests whose repetition is harmless: reads, or stores the server recognises by a request id), until
-        one is answered or ``timeout`` is over. ``self.resent`` counts the repetitions."""
+        one is answered or ``timeout`` is over (:func:`resend_until_answered`): the first answer to any of the
+        sends is the call's, the others are dropped. ``self.resent`` counts the repetitions."""
         timeout = self.timeout if timeout is None else float(timeout)
         if not resend_s or resend_s <= 0 or resend_s >= timeout:
             return self._send(client, request).result(timeout, check=check, stop=self.stop)
-        deadline = time.monotonic() + timeout
-        sent = 0
-        while True:
-            left = deadline - time.monotonic()
+        self._check_spun()
+        woken = threading.Event()     # set by the answer to any of the sends
+        calls: dict = {}
+        gone: list = [None]           # since when the server has been missing after a stop (PendingCall._wait)
+
+        def send():
+            pending = PendingCall(client, request, refused=self.REFUSED, woken=woken)
+            calls[id(pending.future)] = pending
+            return pending.future
+
+        def wait(_futures, seconds: float) -> None:
+            pending = next(iter(calls.values()))
             try:
-                sent += 1
-                return self._send(client, request).result(max(0.0, min(resend_s, left)), check=check, stop=self.stop)
-            except NoAnswer:
-                if deadline - time.monotonic() <= 0.0:
-                    raise NoAnswer(f"{client.srv_name}: no answer within {timeout:g} s (sent {sent} times, "
-                                   f"every {resend_s:g} s; is the node still running?)") from None
-                self.resent += 1
+                pending._wait(seconds, self.stop, gone)
+            except ServiceUnavailable:
+                for p in calls.values():
+                    p.abandon()
+                raise
+
+        answered, futures = resend_until_answered(send, wait, timeout, resend_s)
+        self.resent += len(futures) - 1
+        for f in futures:
+            if f is not answered:
+                calls[id(f)].abandon()
+        if answered is None:
+            raise NoAnswer(f"{client.srv_name}: no answer within {timeout:g} s (sent {len(futures)} times, "
+                           f"every {resend_s:g} s; is the node still running?)")
+        return calls[id(answered)].result(0.0, check=check)
 
 
 def _spin(executor) -> None:
