@@ -57,3 +57,21 @@ def test_without_a_stop_a_missing_server_is_waited_for_until_the_timeout():
     call = PendingCall(server, object())
     threading.Timer(0.3, lambda: server.future.set_result("late")).start()
     assert call.result(5.0) == "late"
+
+
+def test_an_answered_call_whose_wake_callback_has_not_run_yet_returns_its_answer():
+    """rclpy runs a future's done callbacks as tasks of its executor, so a future can be done before the
+    callback that wakes the waiting thread has run; result() takes the answer then instead of waiting."""
+    class IdleExecutor:                   # holds the callbacks it is given and never runs them
+        def __init__(self):
+            self.tasks = []
+
+        def create_task(self, callback, *args):
+            self.tasks.append(callback)
+
+    server, executor = Server(), IdleExecutor()
+    call = PendingCall(server, object())
+    server.future._set_executor(executor)
+    server.future.set_result("answer")
+    assert executor.tasks and not call._done.is_set()
+    assert call.done() and call.result(0.0) == "answer"

@@ -91,7 +91,8 @@ class PendingCall:
         server is there the wait goes on as before (a final checkpoint still gets its answers)."""
         name, future = self.name, self.future
         try:
-            if not self._wait(timeout, stop):
+            # an answered future may not have run its wake callback yet (the executor runs it as a task)
+            if not future.done() and not self._wait(timeout, stop):
                 raise NoAnswer(f"{name}: no answer within {timeout:g} s (is the node still running?)")
         except (NoAnswer, ServiceUnavailable):
             self.abandon()
