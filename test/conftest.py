@@ -139,12 +139,12 @@ def call(node, client, request, timeout: float = 30.0, resend_s: float = 2.0):
         while not any(f.done() for f in futures) and (left := end - time.monotonic()) > 0:
             node.test_executor.spin_once(timeout_sec=min(left, 0.05))
 
-    answered, futures = resend_until_answered(lambda: client.call_async(request), spin, timeout,
+    def drop(future):
+        client.remove_pending_request(future)
+        future.cancel()
+
+    answered, futures = resend_until_answered(lambda: client.call_async(request), spin, drop, timeout,
                                               resend_s if resend else 0.0)
-    for f in futures:
-        if f is not answered:
-            client.remove_pending_request(f)
-            f.cancel()
     if answered is None:
         pytest.fail(f"service {client.srv_name} did not answer within {timeout} s (sent {len(futures)} time(s))")
     return answered.result()

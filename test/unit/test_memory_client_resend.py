@@ -138,10 +138,13 @@ def test_resend_until_answered_sends_every_resend_s_and_gives_up_at_the_timeout(
         sent.append(Future())
         return sent[-1]
 
-    answered, futures = resend_until_answered(send, lambda fs, s: time.sleep(s), timeout=0.55, resend_s=0.2)
+    def nap(calls, seconds):
+        time.sleep(seconds)
+
+    answered, futures = resend_until_answered(send, nap, lambda f: None, timeout=0.55, resend_s=0.2)
     assert answered is None and futures == sent and len(sent) == 3      # at 0, 0.2 and 0.4 s
     sent.clear()
-    answered, futures = resend_until_answered(send, lambda fs, s: time.sleep(s), timeout=0.3, resend_s=0.0)
+    answered, futures = resend_until_answered(send, nap, lambda f: None, timeout=0.3, resend_s=0.0)
     assert answered is None and len(sent) == 1                           # resend_s 0: one send
 
     def send_answered_on_the_second():
@@ -150,7 +153,7 @@ def test_resend_until_answered_sends_every_resend_s_and_gives_up_at_the_timeout(
             f.set_result("ok")
         return f
     sent.clear()
-    answered, futures = resend_until_answered(send_answered_on_the_second, lambda fs, s: time.sleep(s),
+    answered, futures = resend_until_answered(send_answered_on_the_second, nap, lambda f: None,
                                               timeout=5.0, resend_s=0.05)
     assert answered is sent[1] and len(futures) == 2 and answered.result() == "ok"
 

@@ -143,29 +143,38 @@ def call(client, request, timeout: float = 60.0, *, what: str | None = None, che
     return PendingCall(client, request, what).result(timeout, check=check)
 
 
-def resend_until_answered(send, wait, timeout: float, resend_s: float) -> tuple:
+def resend_until_answered(send, wait, drop, timeout: float, resend_s: float) -> tuple:
     """Send a request, and send it again each time ``resend_s`` seconds pass without an answer to any send
     of it, until one is answered or ``timeout`` seconds are over. Every send's answer counts: a late answer
     to the first one ends the wait as well as an answer to the last.
 
-    send() makes one call and returns its future; wait(futures, seconds) returns once one of ``futures`` is
-    done or ``seconds`` have passed (it may raise to end the wait). resend_s <= 0 or >= timeout: one send.
-    Returns (the first answered future or None when the timeout ran out, every future sent); the caller drops
-    the others. Only for requests whose repetition is harmless (reads, or stores the server recognises by a
-    request id)."""
+    send() makes one call and returns it as anything with ``done()`` (an rclpy future, a PendingCall);
+    wait(calls, seconds) returns once one of ``calls`` is done or ``seconds`` have passed (it may raise to end
+    the wait); drop(call) gives one send up. Every send but the answered one is dropped before this returns,
+    and every send when ``wait`` raises. resend_s <= 0 or >= timeout: one send. Returns (the answered call, or
+    None when the timeout ran out; every call sent). Only for requests whose repetition is harmless (reads, or
+    stores the server recognises by a request id)."""
     resend = 0 < resend_s < timeout
     deadline = time.monotonic() + timeout
-    futures = [send()]
-    while True:
-        answered = next((f for f in futures if f.done()), None)
-        if answered is not None:
-            return answered, futures
-        left = deadline - time.monotonic()
-        if left <= 0:
-            return None, futures
-        wait(futures, min(resend_s, left) if resend else left)
-        if resend and not any(f.done() for f in futures) and deadline - time.monotonic() > 0:
-            futures.append(send())
+    calls = [send()]
+    answered = None
+    try:
+        while True:
+            answered = next((c for c in calls if c.done()), None)
+            left = deadline - time.monotonic()
+            if answered is not None or left <= 0:
+                break
+            wait(calls, min(resend_s, left) if resend else left)
+            if resend and not any(c.done() for c in calls) and deadline - time.monotonic() > 0:
+                calls.append(send())
+    except BaseException:
+        for c in calls:
+            drop(c)
+        raise
+    for c in calls:
+        if c is not answered:
+            drop(c)
+    return answered, calls
 
 
 def wait_for_services(clients: dict, timeout: float, hints: dict | None = None,
@@ -307,32 +316,16 @@ class ServiceClient:
             return self._send(client, request).result(timeout, check=check, stop=self.stop)
         self._check_spun()
         woken = threading.Event()     # set by the answer to any of the sends
-        calls: dict = {}
         gone: list = [None]           # since when the server has been missing after a stop (PendingCall._wait)
-
-        def send():
-            pending = PendingCall(client, request, refused=self.REFUSED, woken=woken)
-            calls[id(pending.future)] = pending
-            return pending.future
-
-        def wait(_futures, seconds: float) -> None:
-            pending = next(iter(calls.values()))
-            try:
-                pending._wait(seconds, self.stop, gone)
-            except ServiceUnavailable:
-                for p in calls.values():
-                    p.abandon()
-                raise
-
-        answered, futures = resend_until_answered(send, wait, timeout, resend_s)
-        self.resent += len(futures) - 1
-        for f in futures:
-            if f is not answered:
-                calls[id(f)].abandon()
+        answered, calls = resend_until_answered(
+            lambda: PendingCall(client, request, refused=self.REFUSED, woken=woken),
+            lambda calls, seconds: calls[0]._wait(seconds, self.stop, gone),
+            PendingCall.abandon, timeout, resend_s)
+        self.resent += len(calls) - 1
         if answered is None:
-            raise NoAnswer(f"{client.srv_name}: no answer within {timeout:g} s (sent {len(futures)} times, "
+            raise NoAnswer(f"{client.srv_name}: no answer within {timeout:g} s (sent {len(calls)} times, "
                            f"every {resend_s:g} s; is the node still running?)")
-        return calls[id(answered)].result(0.0, check=check)
+        return answered.result(0.0, check=check)
 
 
 def _spin(executor) -> None:
