@@ -127,7 +127,7 @@ def call(node, client, request, timeout: float = 30.0, resend_s: float = 2.0):
     if not client.wait_for_service(timeout_sec=timeout):
         pytest.fail(f"service {client.srv_name} did not appear within {timeout} s")
     from comper_msgs.srv import GetStats, Sample, Store
-    from comper_msgs_py.service_client import resend_until_answered
+    from comper_msgs_py.service_client import abandon_future, resend_until_answered
     # requests whose repetition is harmless: a store the memory recognises by its request id, and reads
     resend = isinstance(request, (Store.Request, Sample.Request, GetStats.Request))
     if resend and hasattr(request, "request_id") and not request.request_id:
@@ -139,11 +139,8 @@ def call(node, client, request, timeout: float = 30.0, resend_s: float = 2.0):
         while not any(f.done() for f in futures) and (left := end - time.monotonic()) > 0:
             node.test_executor.spin_once(timeout_sec=min(left, 0.05))
 
-    def drop(future):
-        client.remove_pending_request(future)
-        future.cancel()
-
-    answered, futures = resend_until_answered(lambda: client.call_async(request), spin, drop, timeout,
+    answered, futures = resend_until_answered(lambda: client.call_async(request), spin,
+                                              lambda future: abandon_future(client, future), timeout,
                                               resend_s if resend else 0.0)
     if answered is None:
         pytest.fail(f"service {client.srv_name} did not answer within {timeout} s (sent {len(futures)} time(s))")

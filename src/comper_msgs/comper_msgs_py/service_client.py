@@ -24,8 +24,8 @@ import time
 
 from .qos import SERVICE_QOS
 
-__all__ = ["ServiceError", "ServiceUnavailable", "ServiceTimeout", "NoAnswer", "ServiceRefused", "PendingCall", "call",
-           "resend_until_answered", "wait_for_services", "ServiceClient"]
+__all__ = ["ServiceError", "ServiceUnavailable", "ServiceTimeout", "NoAnswer", "ServiceRefused", "PendingCall",
+           "abandon_future", "call", "resend_until_answered", "wait_for_services", "ServiceClient"]
 
 
 class ServiceError(RuntimeError):
@@ -111,8 +111,7 @@ class PendingCall:
 
     def abandon(self) -> None:
         """Stop waiting for this call: its answer, should it still come, is dropped."""
-        self.client.remove_pending_request(self.future)
-        self.future.cancel()
+        abandon_future(self.client, self.future)
 
     def _wait(self, timeout: float, stop: threading.Event | None, gone: list | None = None) -> bool:
         """Wait until the (shared) wake event is set, at most ``timeout`` s; see :meth:`result` for stop.
@@ -141,6 +140,13 @@ def call(client, request, timeout: float = 60.0, *, what: str | None = None, che
 
     check: raise ServiceRefused when the response has ``success == False`` (with its message)."""
     return PendingCall(client, request, what).result(timeout, check=check)
+
+
+def abandon_future(client, future) -> None:
+    """Give up one ``client.call_async`` future: the client forgets it (a late answer is dropped, not kept in
+    its pending table) and the future is cancelled."""
+    client.remove_pending_request(future)
+    future.cancel()
 
 
 def resend_until_answered(send, wait, drop, timeout: float, resend_s: float) -> tuple:
