@@ -65,9 +65,17 @@ class Reference:
     def _heads(self, s, a):
         return (self.critic.q1(s, a), self.critic.q2(s, a)) if self.c.critic == "twin" else (self.critic(s, a),)
 
-    def _critic_step(self, s, a, y, weight=1.0):
+    def _critic_loss(self, s, a, y):
+        return sum(((q - y) ** 2).mean() for q in self._heads(s, a))
+
+    def _critic_step(self, s, a, y, weight=1.0, y_qt=None):
+        """weight x the loss against y; with y_qt (qt_step_mode joint) the loss against y + qt_step_weight x
+        the loss against y_qt, in the one step."""
         self.critic.train()
-        self._apply(sum(((q - y) ** 2).mean() for q in self._heads(s, a)) * weight, self.critic, self.critic_opt)
+        loss = self._critic_loss(s, a, y) * weight
+        if y_qt is not None:
+            loss = loss + self.c.qt_step_weight * self._critic_loss(s, a, y_qt)
+        self._apply(loss, self.critic, self.critic_opt)
         self.critic.eval()
 
     def step(self, b: Transitions, qt: np.ndarray) -> None:
@@ -78,14 +86,16 @@ class Reference:
             q2 = self.critic_target(s2, a2) if self.c.critic == "single" else torch.minimum(
                 self.critic_target.q1(s2, a2), self.critic_target.q2(s2, a2))
             y = r + self.c.gamma * live * q2
-        self._critic_step(s, a, y)
+        y_qt = r + self.c.gamma * live * torch.tensor(qt)
+        joint = self.c.variant == "comcact" and self.c.qt_step_mode == "joint"
+        self._critic_step(s, a, y, y_qt=y_qt if joint else None)
         self.actor.train()
         self.critic.train()
         self._apply(-self.critic(s, self.actor(s)).mean(), self.actor, self.actor_opt)
         self.actor.eval()
         self.critic.eval()
-        if self.c.variant == "comcact":
-            self._critic_step(s, a, r + self.c.gamma * live * torch.tensor(qt), self.c.qt_step_weight)
+        if self.c.variant == "comcact" and not joint:
+            self._critic_step(s, a, y_qt, self.c.qt_step_weight)
         with torch.no_grad():
             for tgt, src in ((self.actor_target, self.actor), (self.critic_target, self.critic)):
                 for t, p in zip(tgt.state_dict().values(), src.state_dict().values()):
@@ -93,9 +103,12 @@ class Reference:
 
 
 def run(lrn: ComcactLearner, data) -> None:
+    """The updates as comcact_node drives them (QT targets given, here fixed per batch)."""
+    comcact = lrn.config.variant == "comcact"
+    joint = comcact and lrn.config.qt_step_mode == "joint"
     for b, qt in data:
-        lrn.update(b)
-        if lrn.config.variant == "comcact":
+        lrn.update(b, qt if joint else None)
+        if comcact and not joint:
             lrn.qt_critic_step(b, qt)
         lrn.soft_update()
 
@@ -123,6 +136,59 @@ def test_eager_step_equals_the_reference_parameter_by_parameter(variant, critic,
     # the actor step leaves no gradient on the critic's weights and keeps them trainable
     assert all(p.requires_grad for p in lrn.critic.parameters())
     assert lrn.compile_report() == {}
+
+
+@pytest.mark.parametrize("critic", ["single", "twin"])
+@pytest.mark.parametrize("weight", [0.5, 1.0])
+def test_joint_qt_step_is_one_critic_step_on_both_losses_equal_to_the_reference(critic, weight):
+    """qt_step_mode joint: one Adam step of the critic on the DDPG loss + qt_step_weight x the QT loss, then
+    the actor step; it differs from the thesis's two critic steps on the same data."""
+    lrn = learner(critic=critic, qt_step_mode="joint", qt_step_weight=weight)
+    separate = learner(critic=critic, qt_step_weight=weight)
+    ref = Reference(lrn)
+    data = batches()
+    run(lrn, data)
+    run(separate, data)
+    for b, qt in data:
+        ref.step(b, qt)
+    assert lrn.updates == 3 and lrn.qt_steps == 3
+    assert_same(lrn, ref)
+    assert int(lrn.critic_opt.state_dict()["state"][0]["step"]) == 3      # one Adam step per update
+    assert int(separate.critic_opt.state_dict()["state"][0]["step"]) == 6
+    with pytest.raises(AssertionError):
+        assert_same(lrn, separate)
+
+
+def test_the_qt_targets_go_where_the_mode_takes_them():
+    (b, qt), = batches(1)
+    with pytest.raises(RuntimeError, match="joint only"):
+        learner().update(b, qt)
+    joint = learner(qt_step_mode="joint")
+    with pytest.raises(RuntimeError, match="no separate QT step"):
+        joint.qt_critic_step(b, qt)
+    with pytest.raises(ValueError, match="3 QT targets for 32 transitions"):
+        joint.update(b, qt[:3])
+    assert joint.updates == 0 and joint.qt_steps == 0                     # refused before any step
+    with pytest.raises(RuntimeError, match="ddpg variant"):
+        learner(variant="ddpg", qt_step_mode="joint").update(b, qt)
+
+
+def test_joint_mode_gate_drops_the_qt_term_and_leaves_the_ddpg_step():
+    """qt_step_gate with joint: a batch whose QT target is far from the DDPG target takes the DDPG update
+    alone (the same parameters as a DDPG learner's), one close to it takes the joint step."""
+    (b, _), = batches(1)
+    gated, ddpg = learner(qt_step_mode="joint", qt_step_gate=True), learner(variant="ddpg")
+    y = gated.td_targets(b).numpy()
+    live = ~b.terminated
+    far = np.where(live, (y - b.rewards) / 0.99 + 100.0, 0.0).astype(np.float32)
+    out = gated.update(b, far)
+    ddpg.update(b)
+    assert out["qt_gated"] == 1.0 and "qt_critic_loss" not in out and gated.qt_gated == 1 and gated.qt_steps == 0
+    assert_same(gated, ddpg, atol=0.0, rtol=0.0)
+    taken = learner(qt_step_mode="joint", qt_step_gate=True)
+    close = np.where(live, (y - b.rewards) / 0.99, 0.0).astype(np.float32)   # QT = the DDPG bootstrap
+    out = taken.update(b, close)
+    assert out["qt_gated"] == 0.0 and taken.qt_steps == 1 and out["qt_critic_loss"] > 0.0
 
 
 def test_qt_diagnostics_after_an_update_reuse_its_ddpg_targets_with_the_same_result():

@@ -367,6 +367,20 @@ class ComcactNode(AgentNode):
                 self.mem.wait_qt_model(r.qt_version)
 
     # ------------------------------------------------------------------------------ learning
+    def _qt_targets(self, batch: Transitions) -> np.ndarray | None:
+        """QT(tau) for the batch's rows (COMCACT; qt_targets rtm: the labels RTM sampled with them, local: the
+        local QT copy), None for async DDPG, before the first reduction or while RTM is empty."""
+        if not self.comcact:              # async DDPG: the memory is its replay, no QT step
+            return None
+        if self.p.qt_targets == "rtm":
+            return batch.value_labels if self.rtm_size > 0 and batch.value_labels.size == len(batch) else None
+        qt = self.mem.qt_model()
+        if qt is None:
+            return None
+        from comper_memory.core import transition_keys
+        with self.ptimers("qt_predict"):
+            return qt.predict_transitions(batch, transition_keys)
+
     def _train_step(self) -> None:
         if self.uses_memory:
             self.mem.collect(wait=False)      # reduce_overlap: a reduction that has answered
@@ -374,31 +388,24 @@ class ComcactNode(AgentNode):
             if got is None:
                 return
             batch, counts = got
+            # qt_step_mode joint: QT's targets from the model before this update's reduction, in the one critic step
+            joint = self.comcact and self.cfg.qt_step_mode == "joint"
+            targets = self._qt_targets(batch) if joint else None
             with self.ptimers("learner"):
-                self.last_update = self.learner.update(batch)
+                self.last_update = self.learner.update(batch, targets)
             self.since_reduce += 1
             if reduce_due(self.since_reduce, self.p.reduce_every, self.rtm_size):
                 self._reduce()
-            targets = None
-            if not self.comcact:              # async DDPG: the memory is its replay, no QT step
-                pass
-            elif self.p.qt_targets == "rtm":
-                if self.rtm_size > 0 and batch.value_labels.size == len(batch):
-                    targets = batch.value_labels
-            else:
-                qt = self.mem.qt_model()
-                if qt is not None:
-                    from comper_memory.core import transition_keys
-                    with self.ptimers("qt_predict"):
-                        targets = qt.predict_transitions(batch, transition_keys)
+            if not joint:
+                targets = self._qt_targets(batch)
             p = self.p
             if targets is not None and self.diagnostics.due(self.update_count):
-                # after the DDPG step on the batch, before the QT step
+                # after the DDPG step on the batch, before the QT step (joint: after the one step)
                 self.diagnostics.record(self.learner, batch, counts, targets, step=self.step, update=self.update_count,
                                         x=self.step, qt_version=int(self.mem.qt_version), rtm_size=int(self.rtm_size),
                                         restored=int(self.mem.restored))
             with self.ptimers("learner"):
-                if targets is not None:
+                if targets is not None and not joint:
                     self.last_update.update(self.learner.qt_critic_step(batch, targets))
                 self.learner.soft_update()
                 if p.restore_batch:       # fresh labels after this update's steps (and target update)

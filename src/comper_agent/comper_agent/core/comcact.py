@@ -8,6 +8,8 @@ One COMCACT agent step, as the node drives it:
     ... reduce when due (QT trains on popped sets) ...
     learner.qt_critic_step(batch, qt_targets)          # only variant comcact
     learner.soft_update()
+With qt_step_mode joint the QT targets come first and there is no second step:
+    learner.update(batch, qt_targets)                  # one critic step on both losses, then actor step
 The DDPG baseline is the same learner with ``variant = ddpg`` (qt_critic_step refuses to run)
 and a plain :class:`~.replay.ReplayBuffer`.
 
@@ -184,22 +186,36 @@ class ComcactLearner:
             loss = loss + self.config.actor_preact_l2 * torch.mean(pre ** 2)
         return loss, torch.mean((pre.detach().abs() > SATURATED_PREACT).float())
 
-    def update(self, batch: Transitions) -> dict:
+    def update(self, batch: Transitions, qt_targets: np.ndarray | None = None) -> dict:
         """One DDPG update on `batch`: critic step towards r + gamma (1 - terminated)
-        Q'(s', mu'(s')), then actor step maximising Q(s, mu(s)). No target update."""
+        Q'(s', mu'(s')), then actor step maximising Q(s, mu(s)). No target update.
+
+        qt_targets (qt_step_mode joint only): QT(tau) per row; the critic step then minimises the DDPG
+        loss + qt_step_weight x the QT step's loss (none where the weight is 0 or qt_step_gate drops it)."""
         s, a, r, s2, not_done = self._tensors(batch)
         with torch.no_grad():
             y = self._targets_fn(r, s2, not_done)
         self._last_targets = (batch, y)
+        y_qt, qt_out = None, {}
+        if qt_targets is not None:
+            if self.config.qt_step_mode != "joint":
+                raise RuntimeError("update() takes QT targets with qt_step_mode joint only; separate: qt_critic_step")
+            y_qt, qt_out = self._qt_target(batch, qt_targets)     # the gate tests the critic before the step
         self.critic.train()
         critic_loss, q = self._critic_loss_fn(s, a, y)
-        self._step(critic_loss, self._critic_params, self.critic_opt)
+        loss = critic_loss
+        if y_qt is not None:
+            qt_loss, _ = self._critic_loss_fn(s, a, y_qt)
+            loss = critic_loss + self.config.qt_step_weight * qt_loss
+            qt_out["qt_critic_loss"] = float(qt_loss.detach()) / self._heads
+            self.qt_steps += 1
+        self._step(loss, self._critic_params, self.critic_opt)
 
         actor = self._actor_update(s)      # the critic still in train mode, as for its own step (batch norm)
         self.critic.eval()
         self.updates += 1
         out = {"critic_loss": float(critic_loss.detach()) / self._heads, **actor,
-               "q_mean": float(q.detach().mean()), "target_mean": float(y.mean())}
+               "q_mean": float(q.detach().mean()), "target_mean": float(y.mean()), **qt_out}
         if self.config.learner_compile != "off":    # into the run's train/ scalars: what compiling cost
             out["compile_s"] = sum(r["compile_s"] for r in self.compile_report().values())
         return out
@@ -217,33 +233,49 @@ class ComcactLearner:
         do with the critic it has (benchmarks/actor_saturation.py). Counts no update."""
         return self._actor_update(self._t(states).reshape(len(states), -1))
 
+    def _qt_target(self, batch: Transitions, qt_targets: np.ndarray) -> tuple[torch.Tensor | None, dict]:
+        """(r + gamma (1 - terminated) QT(tau), or None when no QT loss is taken on this batch: weight 0, or
+        qt_step_gate finds the QT target farther from the DDPG target than the critic's own TD error; the
+        step's scalars)."""
+        if self.config.variant != "comcact":
+            raise RuntimeError("the QT step is COMCACT's; the ddpg variant has it off")
+        c = self.config
+        _, _, r, _, not_done = self._tensors(batch)
+        qt = self._t(qt_targets).reshape(-1)
+        if qt.shape[0] != r.shape[0]:
+            raise ValueError(f"{qt.shape[0]} QT targets for {r.shape[0]} transitions")
+        y = r + c.gamma * not_done * qt
+        out = {"qt_target_mean": float(y.mean())}
+        if c.qt_step_weight == 0.0:
+            return None, out
+        if c.qt_step_gate:
+            d = self.qt_diagnostics(batch, qt_targets)
+            gated = d["qt_target_rmse"] > d["critic_td_rmse"]
+            out["qt_gated"] = float(gated)
+            if gated:
+                self.qt_gated += 1
+                return None, out
+        return y, out
+
     def qt_critic_step(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
         """COMCACT's extra critic step (Algorithm 8 lines 29-34): minimise
         qt_step_weight x (r + gamma (1 - terminated) QT(tau) - Q(s, a))^2 with the critic's optimiser
         (every head of a twin critic). qt_step_gate: no step when the QT target is farther from the
-        DDPG target than the critic's own TD error on this batch."""
-        if self.config.variant != "comcact":
-            raise RuntimeError("qt_critic_step is COMCACT's; the ddpg variant has the QT step off")
-        c = self.config
-        s, a, r, _, not_done = self._tensors(batch)
-        qt = self._t(qt_targets).reshape(-1)
-        if qt.shape[0] != s.shape[0]:
-            raise ValueError(f"{qt.shape[0]} QT targets for {s.shape[0]} transitions")
-        y = r + c.gamma * not_done * qt
-        if c.qt_step_weight == 0.0:
-            return {"qt_target_mean": float(y.mean())}
-        if c.qt_step_gate:
-            d = self.qt_diagnostics(batch, qt_targets)
-            if d["qt_target_rmse"] > d["critic_td_rmse"]:
-                self.qt_gated += 1
-                return {"qt_target_mean": float(y.mean()), "qt_gated": 1.0}
+        DDPG target than the critic's own TD error on this batch. qt_step_mode joint has no second step
+        (update() takes the QT targets)."""
+        if self.config.qt_step_mode != "separate":
+            raise RuntimeError("qt_step_mode joint: the QT loss goes into update(batch, qt_targets), "
+                               "there is no separate QT step")
+        y, out = self._qt_target(batch, qt_targets)
+        if y is None:
+            return out
+        s, a, *_ = self._tensors(batch)
         self.critic.train()
         loss, _ = self._critic_loss_fn(s, a, y)
-        self._step(loss * c.qt_step_weight, self._critic_params, self.critic_opt)
+        self._step(loss * self.config.qt_step_weight, self._critic_params, self.critic_opt)
         self.critic.eval()
         self.qt_steps += 1
-        return {"qt_critic_loss": float(loss.detach()) / self._heads, "qt_target_mean": float(y.mean()),
-                **({"qt_gated": 0.0} if c.qt_step_gate else {})}
+        return {"qt_critic_loss": float(loss.detach()) / self._heads, **out}
 
     @torch.no_grad()
     def qt_diagnostics(self, batch: Transitions, qt_targets: np.ndarray) -> dict:

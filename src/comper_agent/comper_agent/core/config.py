@@ -168,6 +168,15 @@ class ComcactConfig:
         deviation="on = the QT step only where it is closer to the DDPG target than the critic already is; with "
         "fresh labels (restore_batch, label_critic target) at DDPG's level on Walker2d-v4, HalfCheetah-v4 and "
         "InvertedDoublePendulum-v4, below it on Hopper-v4, ahead on none (docs/comcact.md)")
+    qt_step_mode: str = param(
+        "separate", "comcact: how the QT step enters the critic update: separate = a second critic step on "
+        "qt_step_weight x the QT loss after the DDPG step; joint = one critic step on the DDPG loss + "
+        "qt_step_weight x the QT loss (QT's targets from the model before this update's reduction; qt_step_gate "
+        "then tests the critic before the step and drops the QT term of a gated batch)",
+        thesis="separate (Algorithm 8 lines 29-34: a second optimiser step after the DDPG step)",
+        choices=("separate", "joint"),
+        deviation="joint: the critic takes one Adam step per update, as DDPG's does, towards a weighted mean of "
+        "the two targets, instead of two steps that pull it first to one target and then to the other")
     actor_preact_l2: float = param(
         0.0, "weight of a penalty on the actor's output before tanh: the actor minimises -mean Q(s, mu(s)) + "
         "actor_preact_l2 x mean over batch and action dimensions of x^2, x = the output layer's value; for both "
