@@ -305,4 +305,3 @@ def test_joint_qt_step_mode_takes_the_qt_loss_inside_the_ddpg_step(launch, tmp_p
     learner = torch.load(tmp_path / "joint" / "checkpoints" / "latest.pt", weights_only=True)["state"]["learner"]
     assert 0 < learner["qt_steps"] < learner["updates"]      # no QT targets before QT's first version
     assert int(learner["critic_opt"]["state"][0]["step"]) == learner["updates"]
-

@@ -200,7 +200,7 @@ class ComcactLearner:
         if qt_targets is not None:
             if self.config.qt_step_mode != "joint":
                 raise RuntimeError("update() takes QT targets with qt_step_mode joint only; separate: qt_critic_step")
-            y_qt, qt_out = self._qt_target(batch, qt_targets)     # the gate tests the critic before the step
+            y_qt, qt_out = self._qt_target(batch, r, not_done, qt_targets)   # the gate tests the critic before the step
         self.critic.train()
         critic_loss, q = self._critic_loss_fn(s, a, y)
         loss = critic_loss
@@ -233,14 +233,14 @@ class ComcactLearner:
         do with the critic it has (benchmarks/actor_saturation.py). Counts no update."""
         return self._actor_update(self._t(states).reshape(len(states), -1))
 
-    def _qt_target(self, batch: Transitions, qt_targets: np.ndarray) -> tuple[torch.Tensor | None, dict]:
+    def _qt_target(self, batch: Transitions, r: torch.Tensor, not_done: torch.Tensor,
+                   qt_targets: np.ndarray) -> tuple[torch.Tensor | None, dict]:
         """(r + gamma (1 - terminated) QT(tau), or None when no QT loss is taken on this batch: weight 0, or
         qt_step_gate finds the QT target farther from the DDPG target than the critic's own TD error; the
-        step's scalars)."""
+        step's scalars). r, not_done: the batch's tensors, as the caller already made them."""
         if self.config.variant != "comcact":
             raise RuntimeError("the QT step is COMCACT's; the ddpg variant has it off")
         c = self.config
-        _, _, r, _, not_done = self._tensors(batch)
         qt = self._t(qt_targets).reshape(-1)
         if qt.shape[0] != r.shape[0]:
             raise ValueError(f"{qt.shape[0]} QT targets for {r.shape[0]} transitions")
@@ -266,10 +266,10 @@ class ComcactLearner:
         if self.config.qt_step_mode != "separate":
             raise RuntimeError("qt_step_mode joint: the QT loss goes into update(batch, qt_targets), "
                                "there is no separate QT step")
-        y, out = self._qt_target(batch, qt_targets)
+        s, a, r, _, not_done = self._tensors(batch)
+        y, out = self._qt_target(batch, r, not_done, qt_targets)
         if y is None:
             return out
-        s, a, *_ = self._tensors(batch)
         self.critic.train()
         loss, _ = self._critic_loss_fn(s, a, y)
         self._step(loss * self.config.qt_step_weight, self._critic_params, self.critic_opt)
