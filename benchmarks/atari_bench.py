@@ -17,7 +17,11 @@ the games of ``--games`` and the variants of ``--variants`` only (this --out's r
   returns and frames with comper_agent.core.protocol, so runs merged with --include use one
   definition whatever their summary.json says), the thesis's Tables 23/25/30 layout, plus
   frames, episodes, wall time and steps/s; with ``--reference`` (atari_constant_actions.py's JSON)
-  the random-play and best-constant-action rows of each game; with ``--policy``
+  the random-play (mean [bootstrap 95% CI over its episodes]) and best-constant-action rows of each game, and a
+  table of each variant's difference to random play with its bootstrap 95% interval (the variant's seeds and
+  random play's episodes each resampled on their own; "above" only where the interval excludes 0; also in
+  table.json as ``vs_random``): a run's figure is tested against random play's measured spread, not against a
+  point; with ``--policy``
   (atari_policy_check.py's JSON) how many runs' final greedy action is the initial network's in
   every state, and the distinct greedy actions per run;
 * ``<out>/runs.json``: the per-run figures (small; keep it in git and pass it to ``--include`` to
@@ -199,10 +203,11 @@ def reference_lines(path: Path | None, games: list[str]) -> list[str]:
         if g not in ref:
             continue
         rows = {a: float(np.mean(v)) for a, v in ref[g].items()}
-        rnd = rows.pop("random", None)
+        rows.pop("random", None)
         best = max(rows, key=rows.get) if rows else None
-        if rnd is not None:
-            out.append(f"| {g} | random play (reference) | {len(ref[g]['random'])} episodes | {rnd:.1f} | | | | | | | | |")
+        if "random" in ref[g]:
+            out.append(f"| {g} | random play (reference) | {len(ref[g]['random'])} episodes | {_ci(ref[g]['random'])} "
+                       "| | | | | | | | |")
         if best is not None:
             out.append(f"| {g} | best constant action: {best} (reference) | {len(ref[g][best])} episodes | "
                        f"{rows[best]:.1f} | | | | | | | | |")
@@ -243,6 +248,28 @@ def difference_lines(table: list[dict], baseline: str) -> tuple[list[str], list[
         lines.append(f"| {e['game']} | {e['variant']} | {d['n']} / {d['n_baseline']} | {d['diff']:+.1f} "
                      f"[{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}] {d['verdict']} |")
     return lines, records
+
+
+def random_play_lines(table: list[dict], path: Path | None) -> list[str]:
+    """Markdown lines of each variant's last-10 (3*) mean minus random play's mean on the same game (the reference
+    JSON's random episodes), with the bootstrap 95% interval of the difference (seeds and episodes resampled on
+    their own); sets each table entry's ``vs_random``. Nothing without a reference or without random episodes."""
+    if path is None:
+        return []
+    from learning_bench import difference
+    ref = json.loads(Path(path).read_text())
+    lines = ["Difference to random play (last 10 (3*): the variant's mean minus random play's mean episode, bootstrap "
+             "95% interval with the variant's seeds and random play's episodes resampled on their own; above / below "
+             "only where it excludes 0):", "", "| game | variant | seeds / random episodes | difference [95% CI] |",
+             "|---|---|---|---|"]
+    for e in table:
+        rnd = ref.get(e["game"], {}).get("random")
+        if not rnd or not e["last"]:
+            continue
+        d = e["vs_random"] = difference(e["last"], rnd)
+        lines.append(f"| {e['game']} | {e['variant']} | {d['n']} / {d['n_baseline']} | {d['diff']:+.1f} "
+                     f"[{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}] {d['verdict']} |")
+    return lines if len(lines) > 4 else []
 
 
 def report(args) -> None:
@@ -314,6 +341,9 @@ def report(args) -> None:
     lines.append("last 10: mean over seeds [bootstrap 95% CI of that mean]; terciles and the rest: mean (std across "
                  "seeds); * = a run with fewer than 25 episodes reports its last 3 episodes (terciles: last 3 instead "
                  "of 5).")
+    random_lines = random_play_lines(table, args.reference)
+    if random_lines:
+        lines += ["", *random_lines]
     if args.baseline:
         diff_lines, differences = difference_lines(table, args.baseline)
         lines += ["", *diff_lines]
@@ -412,7 +442,8 @@ def main(argv=None) -> int:
     ap.add_argument("--include", nargs="+", default=[], metavar="RUNS_JSON",
                     help="runs.json files of earlier sweeps (kept in git): their runs join the table and curves")
     ap.add_argument("--reference", type=Path, default=None,
-                    help="atari_constant_actions.py's JSON: random-play and best-constant rows per game")
+                    help="atari_constant_actions.py's JSON: random-play and best-constant rows per game, and each "
+                         "variant's difference to random play with its interval")
     ap.add_argument("--policy", nargs="+", default=[], metavar="POLICY_JSON",
                     help="atari_policy_check.py --json output(s): the policy column")
     ap.add_argument("--report-seeds", nargs="+", type=int, default=None, metavar="SEED",

@@ -120,3 +120,44 @@ def test_the_baseline_table_gives_each_variants_difference_with_its_interval(tmp
         assert exc.code == 2
     else:
         raise AssertionError("a baseline outside --variants must be refused")
+
+
+def test_runs_are_tested_against_random_plays_spread_not_its_point(tmp_path):
+    """--reference: the random-play row shows its mean with the interval over its episodes, and each variant's
+    difference to random play has learning_bench's two-group interval (the variant's seeds, random play's
+    episodes): a mean above random play's mean is 'above' only where that interval excludes 0."""
+    bench = load_benchmark("atari_bench")
+    learning = load_benchmark("learning_bench")
+    rng = np.random.default_rng(3)
+    random_play = [float(x) for x in 50.0 * rng.integers(2, 10, size=200)]   # Asterix-like: multiples of 50
+    reference = tmp_path / "constant-actions.json"
+    reference.write_text(json.dumps({"Asterix": {"NOOP": [200.0] * 3, "UP": [650.0] * 3, "random": random_play}}))
+    last = {"far": [400.0, 420.0, 440.0], "near": [250.0, 330.0, 390.0]}
+    include = tmp_path / "runs.json"
+    include.write_text(json.dumps([_record("Asterix", v, s, [x] * 30) for v, xs in last.items()
+                                   for s, x in enumerate(xs)]))
+    out = tmp_path / "report"
+    assert bench.main(["--out", str(out), "--report-only", "--games", "Asterix", "--variants", "far", "near",
+                       "--variant", "far=dqn:n_step=10", "--variant", "near=dqn:n_step=3", "--include", str(include),
+                       "--reference", str(reference)]) == 0
+    rows = {r["variant"]: r for r in json.loads((out / "table.json").read_text())}
+    for variant, values in last.items():
+        want = learning.difference(values, random_play)
+        assert rows[variant]["vs_random"] == want
+        assert rows[variant]["vs_random"]["n_baseline"] == 200
+    assert rows["far"]["vs_random"]["verdict"] == "above"
+    assert rows["near"]["vs_random"]["verdict"] == "not separated"   # its mean is above random play's, not its interval
+    assert np.mean(last["near"]) > np.mean(random_play)
+    table = (out / "table.md").read_text()
+    lo, hi = learning.bootstrap_ci(random_play)
+    assert f"| Asterix | random play (reference) | 200 episodes | {np.mean(random_play):.1f} [{lo:.1f}, {hi:.1f}] |" \
+        in table
+    assert "| Asterix | best constant action: UP (reference) | 3 episodes | 650.0 |" in table
+    assert "| Asterix | far | 3 / 200 | +" in table and "above |" in table
+
+    # without random episodes for a game there is no difference, rather than one against nothing
+    reference.write_text(json.dumps({"Asterix": {"NOOP": [200.0] * 3}}))
+    bench.main(["--out", str(out), "--report-only", "--games", "Asterix", "--variants", "far",
+                "--variant", "far=dqn:n_step=10", "--include", str(include), "--reference", str(reference)])
+    assert "vs_random" not in json.loads((out / "table.json").read_text())[0]
+    assert "Difference to random play" not in (out / "table.md").read_text()
