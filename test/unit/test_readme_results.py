@@ -56,6 +56,7 @@ ATARI_RUNS = {
     "COMPER": [("data-efficient-runs", "comper")],
     "COMPER, n_step:=10": [("data-efficient-runs", "comper_n10")],
     "COMPER, n_step:=10, qt_target_gate:=true": [("qt-gate-runs", "comperg_n10")],
+    "the same, qt_gate_reference:=label": [("qt-gate-runs", "comperl_n10")],
     "COMPER, label_network:=target": [("label-network-target-runs", "comper_tl")],
 }
 ATARI_COLUMNS = ["random play", "best constant action", *ATARI_RUNS]
