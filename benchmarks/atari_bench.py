@@ -193,17 +193,15 @@ def run_protocol(record: dict, budget: int) -> dict:
     return record["protocol"]
 
 
-def reference_lines(path: Path | None, games: list[str]) -> list[str]:
-    """Random play and the best constant action per game (atari_constant_actions.py's JSON)."""
-    if path is None:
+def reference_lines(ref: dict | None, games: list[str]) -> list[str]:
+    """Random play and the best constant action per game (atari_constant_actions.py's JSON, read)."""
+    if ref is None:
         return []
-    ref = json.loads(Path(path).read_text())
     out = []
     for g in games:
         if g not in ref:
             continue
-        rows = {a: float(np.mean(v)) for a, v in ref[g].items()}
-        rows.pop("random", None)
+        rows = {a: float(np.mean(v)) for a, v in ref[g].items() if a != "random"}
         best = max(rows, key=rows.get) if rows else None
         if "random" in ref[g]:
             out.append(f"| {g} | random play (reference) | {len(ref[g]['random'])} episodes | {_ci(ref[g]['random'])} "
@@ -233,7 +231,7 @@ def difference_lines(table: list[dict], baseline: str) -> tuple[list[str], list[
     """Markdown lines and records of each variant's last-10 (3*) mean minus `baseline`'s on the same game, with
     the bootstrap 95% interval of the difference (each variant's seeds resampled on their own, as learning_bench's
     --baseline): 'above' or 'below' only where the interval excludes 0."""
-    from learning_bench import difference
+    from learning_bench import difference, difference_cell
     lines = [f"Difference to {baseline} (last 10 (3*): this variant's mean minus {baseline}'s on the same game, "
              "bootstrap 95% interval with each variant's seeds resampled on their own; above / below only where it "
              "excludes 0):", "", "| game | variant | seeds (this / baseline) | difference [95% CI] |", "|---|---|---|---|"]
@@ -245,31 +243,30 @@ def difference_lines(table: list[dict], baseline: str) -> tuple[list[str], list[
             continue
         d = difference(e["last"], base["last"])
         records.append({"game": e["game"], "variant": e["variant"], "baseline": baseline, **d})
-        lines.append(f"| {e['game']} | {e['variant']} | {d['n']} / {d['n_baseline']} | {d['diff']:+.1f} "
-                     f"[{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}] {d['verdict']} |")
+        lines.append(f"| {e['game']} | {e['variant']} | {d['n']} / {d['n_baseline']} | {difference_cell(d)} |")
     return lines, records
 
 
-def random_play_lines(table: list[dict], path: Path | None) -> list[str]:
+def random_play_lines(table: list[dict], ref: dict | None) -> list[str]:
     """Markdown lines of each variant's last-10 (3*) mean minus random play's mean on the same game (the reference
     JSON's random episodes), with the bootstrap 95% interval of the difference (seeds and episodes resampled on
     their own); sets each table entry's ``vs_random``. Nothing without a reference or without random episodes."""
-    if path is None:
+    if ref is None:
         return []
-    from learning_bench import difference
-    ref = json.loads(Path(path).read_text())
-    lines = ["Difference to random play (last 10 (3*): the variant's mean minus random play's mean episode, bootstrap "
-             "95% interval with the variant's seeds and random play's episodes resampled on their own; above / below "
-             "only where it excludes 0):", "", "| game | variant | seeds / random episodes | difference [95% CI] |",
-             "|---|---|---|---|"]
+    from learning_bench import difference, difference_cell
+    rows = []
     for e in table:
         rnd = ref.get(e["game"], {}).get("random")
         if not rnd or not e["last"]:
             continue
         d = e["vs_random"] = difference(e["last"], rnd)
-        lines.append(f"| {e['game']} | {e['variant']} | {d['n']} / {d['n_baseline']} | {d['diff']:+.1f} "
-                     f"[{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}] {d['verdict']} |")
-    return lines if len(lines) > 4 else []
+        rows.append(f"| {e['game']} | {e['variant']} | {d['n']} / {d['n_baseline']} | {difference_cell(d)} |")
+    if not rows:
+        return []
+    return ["Difference to random play (last 10 (3*): the variant's mean minus random play's mean episode, bootstrap "
+            "95% interval with the variant's seeds and random play's episodes resampled on their own; above / below "
+            "only where it excludes 0):", "", "| game | variant | seeds / random episodes | difference [95% CI] |",
+            "|---|---|---|---|", *rows]
 
 
 def report(args) -> None:
@@ -300,6 +297,7 @@ def report(args) -> None:
         if mdir.exists():
             memory.setdefault(s["game"], {}).setdefault(s["variant"], []).append(
                 MetricsLog.read(mdir, "memory", missing_ok=True))
+    reference = json.loads(args.reference.read_text()) if args.reference else None   # read once for every game
     table = []
     lines = ["| game | variant | seeds | last 10 (3*) [95% CI] | tercile 1 | tercile 2 | tercile 3 | episodes | frames | "
              "wall (min) | steps/s | policy: on the initial greedy action everywhere; distinct greedy actions |",
@@ -309,7 +307,7 @@ def report(args) -> None:
                                                                   if kv[0][1] in VARIANTS else 9)):
         if game not in games:
             if games:
-                lines += reference_lines(args.reference, [games[-1]])
+                lines += reference_lines(reference, [games[-1]])
             games.append(game)
         pr = [run_protocol(s, args.frames) for s in ss]
         star = "*" if any(p["last_k"] == 3 for p in pr) else ""
@@ -336,12 +334,12 @@ def report(args) -> None:
                      f"{_ms(entry['frames'])} | {_ms([w / 60 for w in entry['wall_s']])} | "
                      f"{_ms(entry['steps_per_s'])} | {pcell} |")
     if games:
-        lines += reference_lines(args.reference, [games[-1]])
+        lines += reference_lines(reference, [games[-1]])
     lines.append("")
     lines.append("last 10: mean over seeds [bootstrap 95% CI of that mean]; terciles and the rest: mean (std across "
                  "seeds); * = a run with fewer than 25 episodes reports its last 3 episodes (terciles: last 3 instead "
                  "of 5).")
-    random_lines = random_play_lines(table, args.reference)
+    random_lines = random_play_lines(table, reference)
     if random_lines:
         lines += ["", *random_lines]
     if args.baseline:

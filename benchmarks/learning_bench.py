@@ -379,6 +379,11 @@ def difference(values, baseline) -> dict:
             "n": len(values), "n_baseline": len(baseline)}
 
 
+def difference_cell(d: dict) -> str:
+    """One difference() result as the reports print it: '+12.3 [-4.5, +28.0] not separated'."""
+    return f"{d['diff']:+.1f} [{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}] {d['verdict']}"
+
+
 def difference_table(args, table: dict, steps: list) -> tuple[list, dict]:
     """Markdown lines and results of each algorithm's difference to args.baseline, from the main table's per-seed
     values (the same runs, report steps and last-k column)."""
@@ -401,7 +406,7 @@ def difference_table(args, table: dict, steps: list) -> tuple[list, dict]:
             for k in keys:
                 if k in row and k in ref:
                     d = res[k] = difference(row[k]["values"], ref[k]["values"])
-                    cells.append(f"{d['diff']:+.1f} [{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}] {d['verdict']}")
+                    cells.append(difference_cell(d))
                 else:
                     cells.append("-")
             if res:
