@@ -241,6 +241,24 @@ def test_qt_step_gate_skips_a_qt_target_worse_than_the_critic_s_own():
     assert far == 0.0 and out["qt_gated"] == 1.0 and lrn.qt_gated == 1 and lrn.qt_steps == 0
 
 
+def test_qt_step_gate_decides_on_qt_diagnostics_figures():
+    """The gate's test is qt_diagnostics' on the same batch before the step: gated exactly where
+    qt_target_rmse > critic_td_rmse, for shifts of the QT target on both sides of the critic's TD error."""
+    seen = set()
+    for shift in (0.0, 0.05, 0.2, 0.5, 1.0, 3.0):
+        lrn = learner(qt_step_gate=True)
+        b = batch(seed=3)
+        lrn.update(b)
+        s2 = torch.as_tensor(b.next_states)
+        with torch.no_grad():
+            qt = lrn.critic_target(s2, lrn.actor_target(s2)).numpy() + shift
+        d = lrn.qt_diagnostics(b, qt)
+        out = lrn.qt_critic_step(b, qt)
+        assert out["qt_gated"] == float(d["qt_target_rmse"] > d["critic_td_rmse"])
+        seen.add(out["qt_gated"])
+    assert seen == {0.0, 1.0}
+
+
 def test_label_critic_target_labels_with_the_target_networks():
     """label_critic target: the label is Q'(s', mu'(s')) (0 when terminated), the DDPG target's own
     bootstrap; online (the thesis): Q(s', mu(s')). They differ once an update has moved the online nets."""

@@ -200,7 +200,7 @@ class ComcactLearner:
         if qt_targets is not None:
             if self.config.qt_step_mode != "joint":
                 raise RuntimeError("update() takes QT targets with qt_step_mode joint only; separate: qt_critic_step")
-            y_qt, qt_out = self._qt_target(batch, r, not_done, qt_targets)   # the gate tests the critic before the step
+            y_qt, qt_out = self._qt_target(batch, s, a, r, not_done, qt_targets)   # the gate tests the critic first
         self.critic.train()
         critic_loss, q = self._critic_loss_fn(s, a, y)
         loss = critic_loss
@@ -233,11 +233,11 @@ class ComcactLearner:
         do with the critic it has (benchmarks/actor_saturation.py). Counts no update."""
         return self._actor_update(self._t(states).reshape(len(states), -1))
 
-    def _qt_target(self, batch: Transitions, r: torch.Tensor, not_done: torch.Tensor,
-                   qt_targets: np.ndarray) -> tuple[torch.Tensor | None, dict]:
+    def _qt_target(self, batch: Transitions, s: torch.Tensor, a: torch.Tensor, r: torch.Tensor,
+                   not_done: torch.Tensor, qt_targets: np.ndarray) -> tuple[torch.Tensor | None, dict]:
         """(r + gamma (1 - terminated) QT(tau), or None when no QT loss is taken on this batch: weight 0, or
         qt_step_gate finds the QT target farther from the DDPG target than the critic's own TD error; the
-        step's scalars). r, not_done: the batch's tensors, as the caller already made them."""
+        step's scalars). s, a, r, not_done: the batch's tensors, as the caller already made them."""
         if self.config.variant != "comcact":
             raise RuntimeError("the QT step is COMCACT's; the ddpg variant has it off")
         c = self.config
@@ -249,7 +249,7 @@ class ComcactLearner:
         if c.qt_step_weight == 0.0:
             return None, out
         if c.qt_step_gate:
-            d = self.qt_diagnostics(batch, qt_targets)
+            d = self._qt_gap(batch, s, a, not_done, y)
             gated = d["qt_target_rmse"] > d["critic_td_rmse"]
             out["qt_gated"] = float(gated)
             if gated:
@@ -267,7 +267,7 @@ class ComcactLearner:
             raise RuntimeError("qt_step_mode joint: the QT loss goes into update(batch, qt_targets), "
                                "there is no separate QT step")
         s, a, r, _, not_done = self._tensors(batch)
-        y, out = self._qt_target(batch, r, not_done, qt_targets)
+        y, out = self._qt_target(batch, s, a, r, not_done, qt_targets)
         if y is None:
             return out
         self.critic.train()
@@ -286,12 +286,17 @@ class ComcactLearner:
         critic_td_rmse: RMS of Q(s, a) - the DDPG target (the critic's own TD error, before any
         update on the batch); qt_bias: mean of QT(tau) - Q'(s', mu'(s')) over non-terminal rows.
         After update(batch) and before soft_update() the DDPG targets are the update's own (same target networks)."""
-        c = self.config
         s, a, r, _, not_done = self._tensors(batch)
+        qt = self._t(qt_targets).reshape(-1)
+        return self._qt_gap(batch, s, a, not_done, r + self.config.gamma * not_done * qt)
+
+    @torch.no_grad()
+    def _qt_gap(self, batch: Transitions, s: torch.Tensor, a: torch.Tensor, not_done: torch.Tensor,
+                y_qt: torch.Tensor) -> dict:
+        """qt_diagnostics on the batch's tensors and its QT targets r + gamma (1 - terminated) QT(tau)."""
+        c = self.config
         last = self._last_targets
         y = last[1] if last is not None and last[0] is batch else self.td_targets(batch)
-        qt = self._t(qt_targets).reshape(-1)
-        y_qt = r + c.gamma * not_done * qt
         self.critic.eval()
         q = self.critic(s, a)
         live = not_done > 0
