@@ -259,6 +259,29 @@ def test_qt_step_gate_decides_on_qt_diagnostics_figures():
     assert seen == {0.0, 1.0}
 
 
+
+@pytest.mark.parametrize("mode", ["separate", "joint"])
+def test_qt_step_target_ddpg_target_is_a_qt_without_error(mode):
+    """qt_step_target ddpg_target: whatever QT says, the QT step moves the critic exactly as the thesis's step
+    does when QT(tau) = Q'(s', mu'(s')) (0 where terminated); the gate never drops it."""
+    term = np.zeros(32, bool)
+    term[:5] = True
+    b = batch(32, seed=7, terminated=term)
+    nets = {}
+    for target, shift in (("qt", 0.0), ("ddpg_target", 100.0)):
+        lrn = learner(qt_step_target=target, qt_step_gate=True, qt_step_mode=mode)
+        lrn.update(batch(seed=8))
+        lrn.soft_update()
+        s2 = torch.as_tensor(b.next_states)
+        with torch.no_grad():
+            exact = lrn.critic_target(s2, lrn.actor_target(s2)).numpy() * ~term
+        out = lrn.update(b, exact + shift) if mode == "joint" else lrn.qt_critic_step(b, exact + shift)
+        assert out["qt_gated"] == 0.0 and lrn.qt_steps == 1
+        nets[target] = lrn.critic.state_dict()
+    for k, v in nets["qt"].items():
+        torch.testing.assert_close(nets["ddpg_target"][k], v)
+
+
 def test_label_critic_target_labels_with_the_target_networks():
     """label_critic target: the label is Q'(s', mu'(s')) (0 when terminated), the DDPG target's own
     bootstrap; online (the thesis): Q(s', mu(s')). They differ once an update has moved the online nets."""

@@ -235,16 +235,16 @@ class ComcactLearner:
 
     def _qt_target(self, batch: Transitions, s: torch.Tensor, a: torch.Tensor, r: torch.Tensor,
                    not_done: torch.Tensor, qt_targets: np.ndarray) -> tuple[torch.Tensor | None, dict]:
-        """(r + gamma (1 - terminated) QT(tau), or None when no QT loss is taken on this batch: weight 0, or
-        qt_step_gate finds the QT target farther from the DDPG target than the critic's own TD error; the
-        step's scalars). s, a, r, not_done: the batch's tensors, as the caller already made them."""
+        """(r + gamma (1 - terminated) QT(tau) (qt_step_target ddpg_target: the DDPG target instead), or None
+        when no QT loss is taken on this batch: weight 0, or qt_step_gate finds the QT target farther from the
+        DDPG target than the critic's own TD error; the step's scalars). s, a, r, not_done: the batch's tensors, as the caller already made them."""
         if self.config.variant != "comcact":
             raise RuntimeError("the QT step is COMCACT's; the ddpg variant has it off")
         c = self.config
         qt = self._t(qt_targets).reshape(-1)
         if qt.shape[0] != r.shape[0]:
             raise ValueError(f"{qt.shape[0]} QT targets for {r.shape[0]} transitions")
-        y = r + c.gamma * not_done * qt
+        y = self._ddpg_targets(batch) if c.qt_step_target == "ddpg_target" else r + c.gamma * not_done * qt
         out = {"qt_target_mean": float(y.mean())}
         if c.qt_step_weight == 0.0:
             return None, out
@@ -295,8 +295,7 @@ class ComcactLearner:
                 y_qt: torch.Tensor) -> dict:
         """qt_diagnostics on the batch's tensors and its QT targets r + gamma (1 - terminated) QT(tau)."""
         c = self.config
-        last = self._last_targets
-        y = last[1] if last is not None and last[0] is batch else self.td_targets(batch)
+        y = self._ddpg_targets(batch)
         self.critic.eval()
         q = self.critic(s, a)
         live = not_done > 0
@@ -304,6 +303,12 @@ class ComcactLearner:
         return {"qt_target_rmse": float(torch.sqrt(torch.mean((y_qt - y) ** 2))),
                 "critic_td_rmse": float(torch.sqrt(torch.mean((q - y) ** 2))),
                 "qt_bias": float(gap.mean()) if gap.numel() else 0.0}
+
+    def _ddpg_targets(self, batch: Transitions) -> torch.Tensor:
+        """The DDPG targets of `batch`: update()'s own when it was the last batch updated on (the target
+        networks have not moved since, until soft_update), else computed now."""
+        last = self._last_targets
+        return last[1] if last is not None and last[0] is batch else self.td_targets(batch)
 
     def soft_update(self, tau: float | None = None) -> None:
         """Polyak update of both target networks (parameters and batch-norm running stats)."""

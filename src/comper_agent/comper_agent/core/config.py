@@ -180,6 +180,13 @@ class ComcactConfig:
         "fresh labels and the gate, 3 seeds on Hopper-v4, Walker2d-v4, HalfCheetah-v4 and InvertedDoublePendulum-v4: "
         "above neither the separate steps nor DDPG on any, below both on HalfCheetah-v4 (314 against 2,527 and "
         "2,058 at 50,000 steps; docs/comcact.md)")
+    qt_step_target: str = param(
+        "qt", "comcact: the QT step's target: qt = r + gamma (1 - terminated) QT(tau); ddpg_target = the DDPG step's "
+        "own target r + gamma (1 - terminated) Q'(s', mu'(s')) on the same batch, what a QT without error would "
+        "give (QT is still fitted and queried, so its diagnostics stay QT's own; the gate never fires)",
+        thesis="qt (Algorithm 8 line 30)", choices=("qt", "ddpg_target"),
+        deviation="an ablation, not a configuration to use: ddpg_target measures the most a better QT could add, "
+        "the QT step becoming a second DDPG critic step on the batch (docs/comcact.md, a QT without error)")
     actor_preact_l2: float = param(
         0.0, "weight of a penalty on the actor's output before tanh: the actor minimises -mean Q(s, mu(s)) + "
         "actor_preact_l2 x mean over batch and action dimensions of x^2, x = the output layer's value; for both "
