@@ -259,7 +259,6 @@ def test_qt_step_gate_decides_on_qt_diagnostics_figures():
     assert seen == {0.0, 1.0}
 
 
-
 @pytest.mark.parametrize("mode", ["separate", "joint"])
 def test_qt_step_target_ddpg_target_is_a_qt_without_error(mode):
     """qt_step_target ddpg_target: whatever QT says, the QT step moves the critic exactly as the thesis's step

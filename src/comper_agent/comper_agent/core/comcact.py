@@ -237,7 +237,8 @@ class ComcactLearner:
                    not_done: torch.Tensor, qt_targets: np.ndarray) -> tuple[torch.Tensor | None, dict]:
         """(r + gamma (1 - terminated) QT(tau) (qt_step_target ddpg_target: the DDPG target instead), or None
         when no QT loss is taken on this batch: weight 0, or qt_step_gate finds the QT target farther from the
-        DDPG target than the critic's own TD error; the step's scalars). s, a, r, not_done: the batch's tensors, as the caller already made them."""
+        DDPG target than the critic's own TD error; the step's scalars). s, a, r, not_done: the batch's tensors,
+        as the caller already made them."""
         if self.config.variant != "comcact":
             raise RuntimeError("the QT step is COMCACT's; the ddpg variant has it off")
         c = self.config
