@@ -27,7 +27,7 @@ from rclpy.node import Node
 
 from comper_memory.client import MemoryClient, RateLimitTimeout, new_request_id
 from comper_msgs.msg import EpisodeSummary, PolicyWeights
-from comper_msgs_py.ros_params import declare_config
+from comper_msgs_py.ros_params import declare_config, refuse_undeclared
 from comper_msgs_py.qos import HAND_OVER_S, RECORDED_QOS as SUMMARY_QOS, wait_acknowledged
 from comper_msgs_py.service_client import ServiceError, ServiceTimeout
 
@@ -69,6 +69,7 @@ class ActorNode(Node):
     def __init__(self, node_name: str = "actor_node", **node_kwargs):
         super().__init__(node_name, **node_kwargs)
         self.p = p = declare_config(self, ActorNodeConfig)
+        refuse_undeclared([self], "actor_node")
         self.stop_event = threading.Event()
         self.log = self.get_logger()
         self._latest: PolicyWeights | None = None

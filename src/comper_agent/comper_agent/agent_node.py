@@ -24,7 +24,7 @@ from rclpy.node import Node
 
 from comper_msgs_py.params import config_to_dict
 from comper_msgs_py.qos import HAND_OVER_S
-from comper_msgs_py.ros_params import declare_config
+from comper_msgs_py.ros_params import UnknownParameter, declare_config, refuse_undeclared
 from comper_msgs_py.service_client import ServiceError, wait_for_services
 from comper_sim.client import SimClient
 from comper_sim.core import episode_over
@@ -170,6 +170,14 @@ class AgentNode(Node):
                 qt_name=p.qt_trainer_node if self.reducer == "qt_trainer" else None,
                 qt_params={"memory_node": p.memory_node, "reduce_batch": int(p.reduce_batch), **qt})
             nodes += self.embedded.all
+        try:
+            # every node built from this command line has declared its parameters: a -p none declares is a typo
+            refuse_undeclared(nodes, self.NODE_NAME)
+        except UnknownParameter:
+            if self.embedded is not None:
+                self.embedded.destroy()
+            self.run_dir.remove_if_empty()      # a refused start leaves no run directory behind
+            raise
         try:
             if p.record:
                 topics = record_topics(self.get_fully_qualified_name(), p.sim_node,

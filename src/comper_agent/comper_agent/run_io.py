@@ -76,6 +76,14 @@ class RunDir:
         self.path.mkdir(parents=True, exist_ok=True)
         self.checkpoints = self.path / "checkpoints"
 
+    def remove_if_empty(self) -> None:
+        """Remove the run directory if nothing was written into it (empty sub-folders count as nothing)."""
+        for d in sorted((x for x in self.path.rglob("*") if x.is_dir()), key=lambda x: -len(x.parts)):
+            if not any(d.iterdir()):
+                d.rmdir()
+        if self.path.is_dir() and not any(self.path.iterdir()):
+            self.path.rmdir()
+
     def file(self, name: str) -> Path:
         return self.path / name
 

@@ -21,18 +21,96 @@ is then 1. A signal that arrives before ``main()`` runs (while Python imports th
 modules) still has the default effect.
 
 ``graceful`` is accepted for compatibility: every node now stops this way.
+
+Environment (:func:`init_ros`, also used by the learners' entry point): unless the user chose otherwise,
+a node process keeps DDS discovery on its host (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``; hosts that
+must reach each other set ``SUBNET``), and ``ROS_SECURITY_ENABLE=true`` means Enforce (rcl's own default,
+Permissive, would run without security when the keystore is missing). Security that is requested but
+cannot be in force (no keystore or enclave, or a DDS without DDS-Security, as the PyPI wheels' Fast DDS)
+is one ``cannot start: ...`` line and exit 1 (docs/security.md).
 """
 from __future__ import annotations
 
 import faulthandler
+import os
+import re
 import signal
+import warnings
 from typing import Callable
 
 import rclpy
+import rclpy.logging
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
-__all__ = ["serve_node", "default_executor"]
+from .ros_params import refuse_undeclared
+
+__all__ = ["serve_node", "default_executor", "init_ros", "apply_env_defaults", "security_problem"]
+
+#: where DDS discovery looks when the user has not said (ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_LOCALHOST_ONLY)
+DEFAULT_DISCOVERY_RANGE = "LOCALHOST"
+_SECURITY_DOC = "docs/security.md"
+
+
+def apply_env_defaults(environ=os.environ) -> dict[str, str]:
+    """Set the suite's defaults for a node process where the user has not chosen (before rclpy.init,
+    which reads them): ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless it or the older ROS_LOCALHOST_ONLY
+    is set; with ROS_SECURITY_ENABLE=true, ROS_SECURITY_STRATEGY=Enforce unless set. What it set."""
+    out = {}
+    if not environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") and not environ.get("ROS_LOCALHOST_ONLY"):
+        out["ROS_AUTOMATIC_DISCOVERY_RANGE"] = DEFAULT_DISCOVERY_RANGE
+    if environ.get("ROS_SECURITY_ENABLE") == "true" and not environ.get("ROS_SECURITY_STRATEGY"):
+        out["ROS_SECURITY_STRATEGY"] = "Enforce"
+    environ.update(out)
+    return out
+
+
+def security_problem(exc: BaseException, environ=os.environ) -> str | None:
+    """Why requested ROS 2 security cannot be in force, in one line, from the error of rclpy.init or of
+    the first node; None when security is not requested (ROS_SECURITY_ENABLE is not 'true', as rcl reads
+    it) or the error is about something else."""
+    if environ.get("ROS_SECURITY_ENABLE") != "true":
+        return None
+    text = re.sub(r",? at /\S+:\d+", "", " ".join(str(exc).split()))     # one line, no C source locations
+    low = text.lower()
+    strategy = environ.get("ROS_SECURITY_STRATEGY") or "Permissive"
+    keystore = environ.get("ROS_SECURITY_KEYSTORE", "")
+    head = f"ROS 2 security is requested (ROS_SECURITY_ENABLE=true, ROS_SECURITY_STRATEGY={strategy}) but"
+    tail = f"; unset ROS_SECURITY_ENABLE to run without it ({_SECURITY_DOC})"
+    if "security libraries" in low or "dsecurity" in low:
+        return (f"{head} this ROS 2 install's DDS has no DDS-Security (the Fast DDS of the PyPI wheels is built "
+                f"without it): SROS2 enclaves need a full ROS 2 install{tail}")
+    if strategy == "Enforce" and not keystore:
+        return (f"{head} ROS_SECURITY_KEYSTORE is not set: point it at a keystore made with `ros2 security "
+                f"create_keystore` that holds this node's enclave{tail}")
+    if "security" in low:
+        return (f"{head} the keystore {keystore!r} cannot be used ({text}): create the enclave with `ros2 security "
+                f"create_enclave <keystore> /<enclave>` and start the node with --ros-args --enclave /<enclave>"
+                f"{tail}")
+    return None
+
+
+def init_ros(args=None, name: str = "node") -> bool:
+    """rclpy.init for an entry point, after :func:`apply_env_defaults`, without rclpy's signal handlers.
+    False, after one ``cannot start: ...`` line, when it fails (bad arguments, requested security that
+    cannot be in force); a warning when security is requested but Permissive runs without it."""
+    apply_env_defaults()
+    log = rclpy.logging.get_logger(name)
+    if os.environ.get("ROS_SECURITY_ENABLE") == "true":
+        # rclpy's clean-up after a node that security kept from being created; the cause is logged
+        warnings.filterwarnings("ignore", message="Failed to fini rosout publisher", category=RuntimeWarning)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:
+        log.error("cannot start: " + (security_problem(exc) or " ".join(f"{type(exc).__name__}: {exc}".split())))
+        return False
+    keystore = os.environ.get("ROS_SECURITY_KEYSTORE", "")
+    if os.environ.get("ROS_SECURITY_ENABLE") == "true" and os.environ.get("ROS_SECURITY_STRATEGY") != "Enforce" \
+            and not os.path.isdir(os.path.join(keystore, "enclaves")):
+        log.warning(f"ROS 2 security is requested but NOT in force: no keystore at ROS_SECURITY_KEYSTORE={keystore!r}, "
+                    "and ROS_SECURITY_STRATEGY=Permissive runs without it (unset that variable, or set it to Enforce, "
+                    f"to refuse to start instead; {_SECURITY_DOC})")
+    return True
 
 
 def default_executor(node, context=None) -> Executor:
@@ -67,13 +145,19 @@ def serve_node(make_node: Callable[[], object], name: str, args=None, *,
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _stop)
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    if not init_ros(args, name):
+        return 1
     node = executor = None
     try:
         try:
             node = make_node()
-        except Exception as exc:  # bad parameter, unknown env id, unreadable storage: one line
-            rclpy.logging.get_logger(name).error(f"cannot start: {type(exc).__name__}: {exc}")
+            refuse_undeclared([node], name)     # a misspelt -p would otherwise run with the default
+        except Exception as exc:  # bad or unknown parameter, unknown env id, unreadable storage: one line
+            rclpy.logging.get_logger(name).error(
+                f"cannot start: {security_problem(exc) or f'{type(exc).__name__}: {exc}'}")
+            if node is not None:
+                node.destroy_node()
+                node = None
             return 1
         if on_ready is not None:
             on_ready(node)

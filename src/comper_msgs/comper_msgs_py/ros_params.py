@@ -6,6 +6,7 @@ and bad values are refused with a clear message.
 """
 from __future__ import annotations
 
+import difflib
 import typing
 
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
@@ -13,7 +14,7 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 
 from .params import config_from_dict, describe, spec_of
 
-__all__ = ["declare_config"]
+__all__ = ["declare_config", "UnknownParameter", "refuse_undeclared"]
 
 _PTYPE = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
           float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
@@ -62,3 +63,32 @@ def declare_config(node, cls, *, prefix: str = "", overrides=None, declare_first
         node.declare_parameter(name, default, desc)
         values[f.name] = node.get_parameter(name).value
     return config_from_dict(cls, values)
+
+
+class UnknownParameter(ValueError):
+    """A ``-p name:=value`` (or a parameter file entry) that no node of the process declares."""
+
+
+def refuse_undeclared(nodes, program: str) -> None:
+    """Raise :class:`UnknownParameter` if a parameter given to any of `nodes` (command line, parameter file or the
+    overrides a parent passes) is declared by none of them.
+
+    rclpy takes every ``-p`` of the command line as an override of every node in the process and silently ignores
+    the ones a node never declares, so a misspelt name would run with the default. `nodes`: all nodes built in this
+    process from the same command line (an embedded bring-up shares ``-p`` between the learner and the nodes it
+    embeds, so a name counts as known when any of them declares it). Call it after every node has declared its
+    parameters and before any work starts. The message names the nearest declared parameters."""
+    nodes = list(nodes)
+    declared = set()
+    for n in nodes:
+        declared.update(n._parameters)          # rclpy keeps no public list of declared names
+    unknown = sorted({name for n in nodes for name in n._parameter_overrides} - declared)
+    if not unknown:
+        return
+    lines = []
+    for name in unknown:
+        near = difflib.get_close_matches(name, sorted(declared), n=3, cutoff=0.6)
+        hint = ("; did you mean " + " or ".join(f"`{c}`" for c in near) + "?") if near else \
+            f" (none is close; `ros2 param list` on a running {program} lists its parameters)"
+        lines.append(f"`{name}` is not a parameter of {program}{hint}")
+    raise UnknownParameter("; ".join(lines))
