@@ -73,13 +73,14 @@ class MemoryConfig:
         "process), 'fsync' (also on disk, survives power loss), 'none' (buffered, may lose the tail)",
         choices=("flush", "fsync", "none"))
     wal_accept_loss: bool = param(
-        False, "start even when a write-ahead-log record in the middle of the log is damaged: "
-        "replay keeps the records before it and drops it and everything after it (the damaged "
-        "file is first copied to <file>.damaged-<offset>, later log files are renamed "
-        "<file>.discarded). false: start-up stops with the offset and the number of records "
-        "that would be lost, and nothing is changed. A torn last record (the process was killed "
-        "while writing it, so it was never acknowledged) is always dropped, with a warning. Set "
-        "it for the one start that accepts the loss")
+        False, "start even when the write-ahead log is damaged or ends before the sequence its mark "
+        "(storage_dir/wal.mark, written at start, checkpoint and clean stop) records: replay keeps every "
+        "intact record, before and after the damage (a record whose header alone is damaged is kept too), "
+        "drops the damaged bytes and logs what was dropped (byte ranges, sequences); each damaged file is "
+        "first copied to <file>.damaged-<offset>. false: start-up stops with the file, offsets, records "
+        "after the damage or the missing sequences, and nothing is changed. A torn last record (the "
+        "process was killed while writing it, so it was never acknowledged) is always dropped, with a "
+        "warning and a copy in <file>.torn-<offset>. Set it for the one start that accepts the loss")
     max_key_abs: float = param(
         1e8, "largest magnitude of any key value (observation, action, reward; uint8 frames after "
         "frame_scale); a store holding a larger value is refused whole with the transition and key "

@@ -71,6 +71,21 @@ def check_arrays(arrays: dict[str, np.ndarray]) -> None:
         raise st.SnapshotError(f"snapshot arrays {bad} do not have {n} rows")
 
 
+def _first_sequence(path: str) -> int | None:
+    """The first sequence a log file was opened for (its name: wal-<sequence>.log); None if unknown."""
+    try:
+        return int(os.path.basename(path)[4:-4])
+    except ValueError:
+        return None
+
+
+def _seqs(a: int, b: int) -> str:
+    """'acknowledged operation 5 is' or '3 acknowledged operations (sequences 5-7) are'."""
+    if a == b:
+        return f"acknowledged operation {a} is"
+    return f"{b - a + 1} acknowledged operations (sequences {a}-{b}) are"
+
+
 class Durability:
     """The WAL and snapshots in ``config.storage_dir``."""
 
@@ -101,10 +116,14 @@ class Durability:
             check_arrays(arrays)
             restore(arrays, meta)
             self.checkpoint_sequence = sequence()
-        self._replay_wal(apply)
+        accepted = self._replay_wal(apply)
         files = self._wal_files()
         path = files[-1] if files else os.path.join(d, f"wal-{sequence() + 1:016d}.log")
         self._wal = st.WriteAheadLog(path, self.config.durability)
+        if accepted:   # the damaged log is replaced by a snapshot of what was replayed (and the mark)
+            self.checkpoint()
+        else:
+            self._write_mark("start")
 
     def _recover_snapshot_dir(self) -> None:
         """Finish or undo a snapshot write that a kill interrupted (storage_dir only).
@@ -140,47 +159,117 @@ class Durability:
             else:
                 self._log(f"storage: {left} is not a snapshot leftover; left untouched")
 
-    def _replay_wal(self, apply: Callable[[int, int, dict], None]) -> None:
-        """Replay every log file after the snapshot: loud about damage, never silently lossy."""
-        sequence = self._sequence
+    def _replay_wal(self, apply: Callable[[int, int, dict], None]) -> bool:
+        """Replay every log file after the snapshot: loud about damage, never silently lossy.
+
+        Everything is read and checked before anything changes: damage other than a torn tail of
+        the last file (storage.scan_wal), and a log that ends before the sequence its mark
+        records, stop start-up (files unchanged) unless ``wal_accept_loss``. Then the records are
+        applied; with ``wal_accept_loss`` every intact record, before and after the damage, is
+        replayed, each damaged file is copied to ``<file>.damaged-<offset>``, and True is returned:
+        the caller then checkpoints, which replaces the damaged files. A torn tail is copied to
+        ``<file>.torn-<offset>`` and cut."""
+        accept = self.config.wal_accept_loss
+        start = self._sequence()
         files = self._wal_files()
-        for i, path in enumerate(files):
-            scan = st.scan_wal(path)
-            last = i == len(files) - 1
-            damaged = scan.damage == "corrupt" or (scan.damage == "torn" and not last)
-            later = files[i + 1:]
-            if damaged:
-                later_records = sum(len(st.scan_wal(p).records) for p in later)
-                if not self.config.wal_accept_loss:
-                    more = (f" {later_records} more records are in {len(later)} later log files."
-                            if later else "")
-                    raise scan.corrupt_error(
-                        f"{more} To start anyway and lose the damaged record and everything after "
-                        f"it, restart once with -p wal_accept_loss:=true (MemoryConfig("
-                        f"wal_accept_loss=True)); the damaged file is then copied to "
-                        f"{os.path.basename(path)}.damaged-{scan.good_end} first.")
-            for seq, kind, arr in scan.records:
-                if seq <= sequence():
+        # a file followed by one that starts at or before the snapshot's next sequence is wholly in
+        # the snapshot (a kill fell between a checkpoint's snapshot and its deleting the old files)
+        files = [p for p, q in zip(files, files[1:])
+                 if _first_sequence(q) is None or _first_sequence(q) > start + 1] + files[-1:]
+        scans = [st.scan_wal(p) for p in files]
+        damaged = [s.damage == "corrupt" or (s.damage == "torn" and i < len(scans) - 1)
+                   for i, s in enumerate(scans)]
+        fix = (" To start anyway, restart once with -p wal_accept_loss:=true (MemoryConfig("
+               "wal_accept_loss=True)): the intact records before and after the damage are replayed, "
+               "the damaged bytes dropped, and the file is copied to <file>.damaged-<offset> first.")
+        if not accept:
+            for i, scan in enumerate(scans):
+                if damaged[i]:
+                    later = scans[i + 1:]
+                    more = (f" {sum(len(s.records) for s in later)} more records are in {len(later)} later "
+                            f"log files." if later else "")
+                    whole = (" Only record headers are damaged in this file and every payload checks out: "
+                             "accepting loses nothing." if not scan.lost else "")
+                    raise scan.corrupt_error(more + whole + fix)
+        mark = self._read_mark(accept)
+        # the records to apply, in order, and the sequences that damage took out
+        cur = start
+        plan, gaps = [], []
+        lost_before = False
+        for path, scan in zip(files, scans):
+            for (seq, kind, arr), (a, _) in zip(scan.records, scan.spans):
+                if seq <= cur:
                     continue
-                if seq != sequence() + 1:
-                    raise st.SnapshotError(f"WAL {path}: record {seq} follows {sequence()} (gap)")
-                apply(seq, kind, arr)
-            if damaged:
+                if seq != cur + 1:
+                    if not (lost_before or any(x < a for x, _ in scan.lost)):
+                        raise st.SnapshotError(f"WAL {path}: record {seq} follows {cur} (gap)")
+                    gaps.append((cur + 1, seq - 1))
+                plan.append((seq, kind, arr))
+                cur = seq
+            lost_before = lost_before or bool(scan.lost)
+        missing = None
+        if mark is not None and mark["sequence"] > cur:
+            missing = self._missing(mark, cur, start)
+            if not accept:
+                raise st.WalMissingError(
+                    f"{missing} Start-up stopped and nothing was changed. Put the missing log back (e.g. "
+                    f"from a backup) and restart, or restart once with -p wal_accept_loss:=true "
+                    f"(MemoryConfig(wal_accept_loss=True)) to start from sequence {cur} without them.",
+                    reached=cur, expected=mark["sequence"])
+        for seq, kind, arr in plan:
+            apply(seq, kind, arr)
+        for i, (path, scan) in enumerate(zip(files, scans)):
+            if damaged[i]:
                 keep = f"{path}.damaged-{scan.good_end}"
                 shutil.copy2(path, keep)
-                st.truncate_wal(path, scan.good_end)
-                for p in later:
-                    os.rename(p, p + ".discarded")
-                self._log(f"storage: wal_accept_loss: dropped the damaged record at byte offset "
-                          f"{scan.good_end} of {path} and {scan.records_after} intact records after it"
-                          f"{f' plus {len(later)} later log files (renamed *.discarded)' if later else ''}; "
-                          f"the damaged file is kept as {keep}; replayed up to sequence {sequence()}")
-                return
-            if scan.damage == "torn":
-                st.truncate_wal(path, scan.good_end)
+                self._log(f"storage: wal_accept_loss: {path}: {scan.describe()}; replayed its "
+                          f"{len(scan.records)} intact records ({len(scan.repaired)} with a damaged header) and "
+                          f"dropped {sum(b - a for a, b in scan.lost)} damaged bytes; the file is kept as {keep} "
+                          f"and replaced by a checkpoint")
+            elif scan.damage == "torn":
+                keep = st.cut_torn_tail(path, scan.good_end)
                 self._log(f"storage: dropped a torn last record of {path} ({scan.size - scan.good_end} "
                           f"bytes at offset {scan.good_end}: the process stopped while writing it, so "
-                          f"it was never acknowledged); replayed up to sequence {sequence()}")
+                          f"it was never acknowledged; the bytes are kept as {keep})")
+        if gaps or missing or any(damaged):
+            n = sum(b - a + 1 for a, b in gaps)
+            seqs = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in gaps)
+            tail = ""
+            if mark is not None and mark["sequence"] > cur:
+                tail = f"; {missing}"
+            elif any(d and s.lost and s.lost[-1][1] == s.size and not s.records_after
+                     for d, s in zip(damaged, scans)):
+                tail = f"; damaged records after sequence {cur} at the end of a log file are lost (count unknown)"
+            caveat = (" Identities created after a dropped store can have other ids than first acknowledged "
+                      "(the replay runs without it)." if n else "")
+            dropped = f"{n} logged operation{'s' * (n != 1)}" + (f" (sequence{'s' * (n != 1)} {seqs})" if n else "")
+            self._log(f"storage: wal_accept_loss: dropped {dropped}{tail}; replayed {len(plan)} records up to "
+                      f"sequence {cur}.{caveat}")
+        return any(damaged)
+
+    def _read_mark(self, accept: bool) -> dict | None:
+        try:
+            return st.read_mark(self.config.storage_dir)
+        except st.SnapshotError as e:
+            if not accept:
+                raise st.SnapshotError(f"{e}. Start-up stopped and nothing was changed; restart once with "
+                                       "-p wal_accept_loss:=true to start without the check (a new mark "
+                                       "is written)") from None
+            self._log(f"storage: wal_accept_loss: {e}; started without checking the log against it")
+            return None
+
+    def _missing(self, mark: dict, reached: int, start: int) -> str:
+        path = os.path.join(self.config.storage_dir, mark["file"])
+        now = (f"it is now {os.path.getsize(path)} bytes" if os.path.exists(path) else "it is missing")
+        return (f"WAL: the log ends at sequence {reached} (snapshot: {start}), but at the last "
+                f"{mark['when']} it had reached sequence {mark['sequence']} ({mark['file']}, "
+                f"{mark['bytes']} bytes; {now}): {_seqs(reached + 1, mark['sequence'])} "
+                f"missing.")
+
+    def _write_mark(self, when: str) -> None:
+        """The mark after the log's bytes are on disk (storage.write_mark)."""
+        size = self._wal.sync()
+        st.write_mark(self.config.storage_dir, self._wal.path, self._sequence(), size, when)
 
     def append(self, seq: int, kind: int, arrays: dict[str, np.ndarray]) -> None:
         """Log operation ``seq`` (before it is applied and acknowledged)."""
@@ -205,8 +294,15 @@ class Durability:
             if p != self._wal.path:
                 os.remove(p)
         self.checkpoint_sequence = sequence
+        self._write_mark("checkpoint")
 
     def close(self) -> None:
+        """Close the log; a clean stop records the sequence it reached (``wal.mark``)."""
         if self._wal is not None:
+            try:
+                self._write_mark("stop")
+            except OSError as e:
+                self._log(f"storage: could not write {st.MARK_FILE} at stop ({e}); the next start "
+                          "checks the log against the previous mark only")
             self._wal.close()
             self._wal = None

@@ -1,20 +1,30 @@
-"""File formats of the memory's durability: write-ahead log and checksummed snapshots (no pickles).
+"""File formats of the memory's durability: write-ahead log, its mark, and checksummed snapshots (no pickles).
 
 WAL file: a sequence of records ``MAGIC | u32 payload length | u32 crc32(payload) | payload``
 with payload ``u64 sequence | u8 kind | u32 header length | JSON header | raw array bytes``.
 A record is written (and flushed / fsynced, per ``durability``) before the operation it logs
 is acknowledged.
 
-Replay (:func:`scan_wal`) tells two kinds of damage apart:
+Replay (:func:`scan_wal`) reads the whole file and tells the kinds of damage apart:
 
-* a **torn tail**: the last record of the file is incomplete (the header or the payload runs past
-  the end of the file, or the bytes there are not a record) and no intact record follows it. A
-  process killed mid-write leaves exactly this; the record was never acknowledged, so it is
-  dropped (the caller truncates it and logs a warning).
-* **corruption**: a damaged record (bad magic, CRC mismatch, undecodable) with an intact record
-  after it, or a complete last record whose CRC fails (it was written in full, so it was
-  acknowledged). Replay stops with :class:`WalCorruptError` (offset, records after it); the file
-  is left as it is until the user accepts the loss explicitly.
+* an **intact record**: magic, length and CRC check out and the payload decodes.
+* a **damaged header**: the 12 header bytes are wrong (magic or length) but the bytes after them
+  form a complete payload whose CRC matches the header's CRC field (the record ends at its length,
+  at the next intact record or at the end of the file). The record was written in full; it is
+  listed as repaired (its payload is intact) and the file counts as corrupt.
+* **lost bytes**: a range that holds no intact record (a CRC mismatch, a record that does not
+  decode, unrecognisable bytes). The scan resynchronises on the next intact record (the magic
+  followed by a record whose CRC matches) and goes on, so every intact record after the damage
+  is found.
+* a **torn tail**: the only damage is the end of the file, and those bytes are the beginning of a
+  record that runs past the end (magic and length as written, payload incomplete). A process
+  killed mid-write leaves exactly this; the record was never acknowledged. Anything else is
+  **corruption**.
+
+WAL mark (``wal.mark`` in the storage directory, :func:`write_mark` / :func:`read_mark`): the
+log file, the sequence the log had reached and the file's size, written atomically (and
+checksummed) when the log is opened, at each checkpoint and at a clean stop. A log that ends
+before the mark's sequence lost acknowledged operations (the file was emptied or cut).
 
 Snapshot: a directory with ``state.npz`` (numpy arrays, written and read with
 ``allow_pickle=False``) and ``manifest.json`` (format version, metadata, sha256 and size of
@@ -24,6 +34,9 @@ target and renamed into place. An existing target is replaced only when it is it
 directory (its files are ``manifest.json`` and ``state.npz`` and nothing else); anything else is
 refused and left untouched. A snapshot whose checksums, size or manifest do not match is refused
 with :class:`SnapshotError` before anything is loaded.
+
+Size: the memory's whole on-disk format (log records and their scan, the log's mark, snapshots)
+with the checks that refuse damage; the durability logic that uses them is in :mod:`.durability`.
 """
 from __future__ import annotations
 
@@ -37,8 +50,9 @@ from typing import Iterator
 
 import numpy as np
 
-__all__ = ["WriteAheadLog", "read_wal", "scan_wal", "WalScan", "WalCorruptError", "write_snapshot",
-           "read_snapshot", "is_snapshot_dir", "SnapshotError", "WAL_STORE", "WAL_COMMIT"]
+__all__ = ["WriteAheadLog", "read_wal", "scan_wal", "WalScan", "WalCorruptError", "WalMissingError",
+           "write_snapshot", "read_snapshot", "is_snapshot_dir", "SnapshotError", "WAL_STORE", "WAL_COMMIT",
+           "MARK_FILE", "read_mark", "write_mark"]
 
 MAGIC = b"CMW1"
 _HEAD = struct.Struct("<4sII")
@@ -48,6 +62,9 @@ WAL_COMMIT = 2
 SNAPSHOT_FORMAT = 2          # 2: manifest_sha256 covers the manifest; 1 (read only): it did not
 _SNAPSHOT_FILES = {"manifest.json", "state.npz"}
 _MAX_RECORD = 1 << 31        # a length field above this is damage, not a record
+_MAX_ENDS = 64               # payload ends tried for a record whose header is damaged
+MARK_FILE = "wal.mark"
+MARK_FORMAT = 1
 
 
 class SnapshotError(RuntimeError):
@@ -56,7 +73,7 @@ class SnapshotError(RuntimeError):
 
 
 class WalCorruptError(SnapshotError):
-    """A WAL record in the middle of the log is damaged; replay stopped, the file is unchanged."""
+    """A WAL file is damaged (not only a torn tail); replay stopped, the file is unchanged."""
 
     def __init__(self, message: str, *, path: str, offset: int, records_after: int,
                  first_seq_after: int | None):
@@ -65,6 +82,15 @@ class WalCorruptError(SnapshotError):
         self.offset = offset
         self.records_after = records_after
         self.first_seq_after = first_seq_after
+
+
+class WalMissingError(SnapshotError):
+    """The log ends before the sequence its mark records: acknowledged operations are missing."""
+
+    def __init__(self, message: str, *, reached: int, expected: int):
+        super().__init__(message)
+        self.reached = reached
+        self.expected = expected
 
 
 def encode_arrays(seq: int, kind: int, arrays: dict[str, np.ndarray]) -> bytes:
@@ -116,6 +142,12 @@ class WriteAheadLog:
             if self.durability == "fsync":
                 os.fsync(self._f.fileno())
 
+    def sync(self) -> int:
+        """Write everything to disk (whatever ``durability``); the file's size."""
+        self._f.flush()
+        os.fsync(self._f.fileno())
+        return os.fstat(self._f.fileno()).st_size
+
     def close(self) -> None:
         if not self._f.closed:
             self._f.flush()
@@ -124,7 +156,7 @@ class WriteAheadLog:
             self._f.close()
 
 
-def _record_at(data: bytes, off: int):
+def _record_at(data, off: int):
     """(status, end, record): status 'ok', 'short' (runs past the end of data) or 'bad'."""
     if off + _HEAD.size > len(data):
         return "short", len(data), None
@@ -143,20 +175,73 @@ def _record_at(data: bytes, off: int):
         return "bad", end, None
 
 
-def _records_after(data: bytes, start: int) -> tuple[int, int | None]:
-    """Intact records found after a damaged spot (resynchronising on the magic), first sequence."""
-    n, first = 0, None
-    raw = data.obj if isinstance(data, memoryview) else data   # bytes, for find()
+def _next_intact(data, raw: bytes, start: int) -> int:
+    """Offset of the first intact record at or after ``start`` (the magic, then a record whose
+    CRC matches and which decodes), or the end of the data."""
     pos = raw.find(MAGIC, start)
     while pos >= 0:
-        status, end, rec = _record_at(data, pos)
-        if status == "ok":
-            n += 1
-            first = rec[0] if first is None else first
-            pos = end if raw[end:end + 4] == MAGIC else raw.find(MAGIC, end)
-        else:
-            pos = raw.find(MAGIC, pos + 1)
-    return n, first
+        if _record_at(data, pos)[0] == "ok":
+            return pos
+        pos = raw.find(MAGIC, pos + 1)
+    return len(data)
+
+
+def _with_damaged_header(data, raw: bytes, off: int, limit: int):
+    """(end, record) when the bytes from off + 12 up to some end <= limit are a complete payload
+    whose CRC matches the header's CRC field (magic or length damaged, payload intact); else None.
+    Ends tried: the one the length field gives, each later magic, ``limit``."""
+    first = off + _HEAD.size + _PAY.size
+    if first > limit:
+        return None
+    _, length, crc = _HEAD.unpack_from(data, off)
+    ends = {limit}
+    if off + _HEAD.size + length <= limit:
+        ends.add(off + _HEAD.size + length)
+    pos = raw.find(MAGIC, first)
+    while 0 <= pos < limit and len(ends) < _MAX_ENDS:
+        ends.add(pos)
+        pos = raw.find(MAGIC, pos + 1)
+    for end in sorted(e for e in ends if e >= first):
+        payload = data[off + _HEAD.size:end]
+        if zlib.crc32(payload) == crc:
+            try:
+                return end, decode_payload(payload, copy=False)
+            except Exception:  # noqa: BLE001 - a CRC match that does not decode is no record
+                continue
+    return None
+
+
+def _torn_prefix(data, off: int) -> bool:
+    """The bytes from off to the end are the start of one record that runs past the end: what a
+    write cut short leaves (magic and length as written, the payload incomplete)."""
+    k = len(data) - off
+    head = bytes(data[off:off + _HEAD.size])
+    if head[:4] != MAGIC[:min(4, k)]:
+        return False
+    if k < _HEAD.size:
+        return True
+    _, length, _ = _HEAD.unpack_from(head, 0)
+    return _PAY.size <= length <= _MAX_RECORD and off + _HEAD.size + length > len(data)
+
+
+def _peek(data, start: int, end: int) -> str:
+    """What a damaged range's first header claims (unverified), for the report; '' if nothing."""
+    try:
+        if data[start:start + 4] != MAGIC or end - start < _HEAD.size + _PAY.size:
+            return ""
+        seq, kind, hlen = _PAY.unpack_from(data, start + _HEAD.size)
+        p = start + _HEAD.size + _PAY.size
+        if hlen > end - p:
+            return ""
+        header = json.loads(bytes(data[p:p + hlen]))
+        rows = {name: shape for name, _, shape in header}
+        if kind == WAL_STORE and rows.get("states"):
+            return f"its unverified header says sequence {seq}, a store of {int(rows['states'][0])} transitions"
+        if kind == WAL_COMMIT and rows.get("ids"):
+            return f"its unverified header says sequence {seq}, a reduction commit of {int(rows['ids'][0])} identities"
+        return f"its unverified header says sequence {seq}"
+    except Exception:  # noqa: BLE001 - a hint only
+        return ""
 
 
 @dataclass
@@ -164,57 +249,98 @@ class WalScan:
     """What :func:`scan_wal` found in one WAL file."""
     path: str
     size: int
-    records: list = field(default_factory=list)   # (sequence, kind, arrays) of the intact prefix
-                                                   # (read-only views into the file's bytes)
-    good_end: int = 0                              # byte offset after the last intact record
+    records: list = field(default_factory=list)   # (sequence, kind, arrays) of every intact record, in
+                                                   # file order (read-only views into the file's bytes)
+    spans: list = field(default_factory=list)     # (start, end) byte range of each record
+    repaired: list = field(default_factory=list)  # indices into records: header damaged, payload intact
+    lost: list = field(default_factory=list)      # (start, end) byte ranges holding no intact record
+    hints: list = field(default_factory=list)     # per lost range: what its header claims ('' if nothing)
     damage: str | None = None                      # None, 'torn' or 'corrupt'
-    records_after: int = 0                         # intact records after the damaged spot
+    good_end: int = 0                              # end of the intact prefix (offset of the first damage)
+    records_after: int = 0                         # intact records that start after the first damage
     first_seq_after: int | None = None
+
+    @property
+    def prefix(self) -> int:
+        """Number of records before the first damage."""
+        return sum(1 for s, _ in self.spans if s < self.good_end)
+
+    def describe(self) -> str:
+        """The damage in words: each lost byte range and each record whose header was damaged."""
+        parts = []
+        for (a, b), hint in zip(self.lost, self.hints):
+            before = [r[0] for (s, _), r in zip(self.spans, self.records) if s < a]
+            after = [r[0] for (s, _), r in zip(self.spans, self.records) if s >= b]
+            where = (f"between sequences {before[-1] if before else 'start'} and "
+                     f"{after[0] if after else 'end of file'}")
+            parts.append(f"bytes {a}-{b} ({b - a} bytes, {where}) hold no intact record"
+                         + (f" ({hint})" if hint else ""))
+        for i in self.repaired:
+            a, b = self.spans[i]
+            parts.append(f"the record at bytes {a}-{b} (sequence {self.records[i][0]}) has a damaged header "
+                         f"but its payload checks out (CRC)")
+        return "; ".join(parts)
 
     def corrupt_error(self, hint: str = "") -> WalCorruptError:
         seqs = (f" (sequences from {self.first_seq_after})" if self.first_seq_after is not None else "")
-        last = self.records[-1][0] if self.records else None
+        before = [r[0] for (s, _), r in zip(self.spans, self.records) if s < self.good_end]
+        last = before[-1] if before else None
         return WalCorruptError(
             f"WAL {self.path}: damaged record at byte offset {self.good_end} of {self.size} "
             f"(after sequence {last}); {self.records_after} intact records follow it{seqs}. "
-            f"Start-up stopped and the file was not changed.{hint}",
+            f"Damage: {self.describe()}. Start-up stopped and the file was not changed.{hint}",
             path=self.path, offset=self.good_end, records_after=self.records_after,
             first_seq_after=self.first_seq_after)
 
 
 def scan_wal(path: str) -> WalScan:
-    """Read a WAL file without changing it: the intact prefix and what ends it (module docstring)."""
+    """Read a WAL file without changing it: every intact record and the damage between them
+    (module docstring)."""
     with open(path, "rb") as f:
-        data = memoryview(f.read())
-    scan = WalScan(path, len(data))
+        raw = f.read()
+    data = memoryview(raw)
+    n = len(data)
+    scan = WalScan(path, n)
     off = 0
-    while off < len(data):
+    while off < n:
         status, end, rec = _record_at(data, off)
-        if status == "ok":
-            scan.records.append(rec)
-            off = end
-            continue
-        scan.good_end = off
-        n_after, first = _records_after(data, off + 1)
-        scan.records_after, scan.first_seq_after = n_after, first
-        if n_after == 0 and (status == "short" or (status == "bad" and end == off)):
-            scan.damage = "torn"   # incomplete or not a record, nothing intact after it
-        else:
-            scan.damage = "corrupt"  # a complete record failed its CRC, or intact records follow
+        if status != "ok":
+            nxt = _next_intact(data, raw, off + 1)
+            got = _with_damaged_header(data, raw, off, nxt)
+            if got is None:
+                scan.lost.append((off, nxt))
+                scan.hints.append(_peek(data, off, nxt))
+                off = nxt
+                continue
+            end, rec = got
+            scan.repaired.append(len(scan.records))
+        scan.records.append(rec)
+        scan.spans.append((off, end))
+        off = end
+    starts = [a for a, _ in scan.lost] + [scan.spans[i][0] for i in scan.repaired]
+    if not starts:
+        scan.good_end = n
         return scan
-    scan.good_end = off
+    scan.good_end = min(starts)
+    after = [r[0] for (s, _), r in zip(scan.spans, scan.records) if s > scan.good_end]
+    scan.records_after = len(after)
+    scan.first_seq_after = after[0] if after else None
+    torn = (not scan.repaired and len(scan.lost) == 1 and scan.lost[0][1] == n
+            and _torn_prefix(data, scan.lost[0][0]))
+    scan.damage = "torn" if torn else "corrupt"
     return scan
 
 
 def read_wal(path: str, *, repair: bool = True) -> Iterator[tuple[int, int, dict[str, np.ndarray]]]:
     """Yield (sequence, kind, arrays) of each intact record. A torn tail ends the iteration (and
-    is truncated with repair=True); a corrupt record raises :class:`WalCorruptError`, file unchanged."""
+    is truncated with repair=True, after a copy to ``<path>.torn-<offset>``); any other damage
+    raises :class:`WalCorruptError`, file unchanged."""
     scan = scan_wal(path)
     if scan.damage == "corrupt":
         raise scan.corrupt_error()
     yield from scan.records
     if repair and scan.damage == "torn":
-        truncate_wal(path, scan.good_end)
+        cut_torn_tail(path, scan.good_end)
 
 
 def truncate_wal(path: str, size: int) -> None:
@@ -222,6 +348,60 @@ def truncate_wal(path: str, size: int) -> None:
         f.truncate(size)
         f.flush()
         os.fsync(f.fileno())
+
+
+def cut_torn_tail(path: str, offset: int) -> str:
+    """Copy the bytes from ``offset`` to ``<path>.torn-<offset>`` (fsynced), then truncate the
+    file there; the copy's path."""
+    keep = f"{path}.torn-{offset}"
+    with open(path, "rb") as f:
+        f.seek(offset)
+        tail = f.read()
+    _write_durably(keep, tail)
+    truncate_wal(path, offset)
+    return keep
+
+
+def _write_durably(path: str, data: bytes) -> None:
+    with open(path, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _mark_digest(body: dict) -> str:
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def write_mark(storage_dir: str, wal_file: str, sequence: int, size: int, when: str) -> None:
+    """Record atomically that the log ``wal_file`` reached ``sequence`` at ``size`` bytes (``when``:
+    start, checkpoint or stop). Call it only once those bytes are on disk."""
+    body = {"format": MARK_FORMAT, "file": os.path.basename(wal_file), "sequence": int(sequence),
+            "bytes": int(size), "when": when}
+    body["sha256"] = _mark_digest(body)
+    path = os.path.join(storage_dir, MARK_FILE)
+    _write_durably(path + ".new", json.dumps(body, sort_keys=True).encode())
+    os.replace(path + ".new", path)
+    _fsync_dir(storage_dir)
+
+
+def read_mark(storage_dir: str) -> dict | None:
+    """The mark (file, sequence, bytes, when), None if there is none; SnapshotError if damaged."""
+    path = os.path.join(storage_dir, MARK_FILE)
+    if not os.path.lexists(path):
+        return None
+    try:
+        with open(path, "rb") as f:
+            m = json.loads(f.read())
+        ok = (isinstance(m, dict) and m.get("format") == MARK_FORMAT
+              and m.get("sha256") == _mark_digest({k: v for k, v in m.items() if k != "sha256"})
+              and isinstance(m.get("sequence"), int) and isinstance(m.get("bytes"), int)
+              and isinstance(m.get("file"), str))
+    except (OSError, ValueError) as e:
+        raise SnapshotError(f"{path}: cannot read the log's mark ({e})") from None
+    if not ok:
+        raise SnapshotError(f"{path}: the log's mark is damaged (checksum or fields)")
+    return m
 
 
 def _sha256_file(path: str) -> tuple[str, int]:
