@@ -3,6 +3,11 @@ reversed order) and snapshots continuously, and appends every *acknowledged* res
 acknowledgement file (one JSON line each, flushed) until the node stops answering.
 
     python memory_fault_worker.py --node NAME --worker W --ack-file acks.jsonl
+    python memory_fault_worker.py ... --count 20 --stores-only --checkpoint-after 4
+
+--count N stops after N stores (exit 0); --stores-only stores and nothing else (one WAL record per
+store: the log's sequence is the number of stores); --checkpoint-after J asks for one checkpoint
+(snapshot "") after store J.
 """
 from __future__ import annotations
 
@@ -21,6 +26,9 @@ def main(argv=None) -> int:
     p.add_argument("--worker", type=int, required=True)
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--ack-file", required=True)
+    p.add_argument("--count", type=int, default=0, help="stop after this many stores (0: until the node stops)")
+    p.add_argument("--stores-only", action="store_true", help="no reductions, no snapshots")
+    p.add_argument("--checkpoint-after", type=int, default=-1, help="one checkpoint after this store")
     args = p.parse_args(argv)
 
     from comper_memory.client import MemoryClient, MemoryServiceError
@@ -36,9 +44,15 @@ def main(argv=None) -> int:
 
         j = 0
         try:
-            while True:
+            while not args.count or j < args.count:
                 reply = memory.store(make_batch(args.worker, j, args.batch))
-                ack(op="store", j=j, ids=[int(i) for i in reply.identity_ids])
+                ack(op="store", j=j, ids=[int(i) for i in reply.identity_ids], seq=int(reply.wal_sequence))
+                if j == args.checkpoint_after:
+                    memory.snapshot("")
+                    ack(op="checkpoint", after=j)
+                if args.stores_only:
+                    j += 1
+                    continue
                 if j % 3 == 2:
                     sets = memory.reduce_begin(max_sets=8)
                     ids = sets.identity_ids[::-1].copy()

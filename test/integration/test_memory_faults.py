@@ -1,7 +1,9 @@
 """Fault injection against memory_node in its own process (`ros2 run`), issue 16: SIGKILL at random
 moments of a client that stores, reduces and snapshots (zero acknowledged loss over several
 iterations), damaged WAL and snapshot metadata at start-up, snapshot path escapes, repeated
-SIGTERMs, and property-based fuzzing of every service request with raw messages."""
+SIGTERMs, and property-based fuzzing of every service request with raw messages. Issue 57: a damaged
+header of the last WAL record, a log emptied or cut below its mark, a flipped byte with
+wal_accept_loss (every later record kept) and a torn tail (dropped, with a copy)."""
 from __future__ import annotations
 
 import json
@@ -21,6 +23,7 @@ from hypothesis import strategies as st
 
 from comper_memory.client import MemoryServiceError
 from comper_memory.core import CompactMemory, MemoryConfig
+from comper_memory.core import storage as wal_format
 from comper_msgs.msg import Array
 from comper_msgs.srv import ReduceBegin, ReduceCommit, Sample, Snapshot, Store
 from comper_msgs_py.convert import transitions_to_batch
@@ -117,23 +120,42 @@ def _core_storage(path, ops=30):
     return wal
 
 
+def record_offsets(wal):
+    data, offs, off = wal.read_bytes(), [], 0
+    while off < len(data):
+        offs.append(off)
+        off += wal_format._HEAD.size + wal_format._HEAD.unpack_from(data, off)[1]
+    return offs
+
+
+def flip(wal, pos, mask=0x01):
+    raw = bytearray(wal.read_bytes())
+    raw[pos] ^= mask
+    wal.write_bytes(bytes(raw))
+    return bytes(raw)
+
+
 def test_damaged_wal_and_edited_manifest_stop_start_up_with_a_clear_error(launch, client_of, tmp_path):
+    """A flipped byte at 20 % of the WAL (in the arrays of store 6 of 30): refused; with wal_accept_loss
+    only that store is lost and every intact record after it is replayed (issue 57: all were dropped)."""
     storage = tmp_path / "storage"
     wal = _core_storage(storage)
-    raw = bytearray(wal.read_bytes())
-    raw[len(raw) // 5] ^= 0x01
-    wal.write_bytes(bytes(raw))
+    offs = record_offsets(wal)
+    raw = flip(wal, offs[7] - 3)
     proc, _ = start(launch, "walbad", "-p", f"storage_dir:={storage}")
     assert wait_exit(proc) == 1
     log = proc.log()
-    assert "cannot start" in log and "byte offset" in log and "intact records follow" in log, log
+    assert "cannot start" in log and "byte offset" in log and "23 intact records follow" in log, log
     assert "wal_accept_loss:=true" in log and "Traceback" not in log
-    assert wal.read_bytes() == bytes(raw)
+    assert wal.read_bytes() == raw
     proc, name = start(launch, "walaccept", "-p", f"storage_dir:={storage}", "-p", "wal_accept_loss:=true")
     memory = client_of(name)
-    s = memory.stats()
-    assert 0 < s["identities"] < 120 and s["identities"] % 4 == 0
-    assert "wal_accept_loss" in proc.log() and list(storage.glob("wal-*.log.damaged-*"))
+    assert memory.stats()["identities"] == 29 * 4
+    log = proc.log()
+    assert f"bytes {offs[6]}-{offs[7]}" in log and "dropped 1 logged operation (sequence 7)" in log, log
+    assert (storage / f"{wal.name}.damaged-{offs[6]}").read_bytes() == raw
+    for j in range(30):   # every store but the damaged one is back
+        assert memory.store(make_batch(1, j, 4)).new_identities == (4 if j == 6 else 0), j
     assert proc.stop() == 0
 
     # a snapshot whose manifest was edited by hand (next_id lowered)
@@ -153,9 +175,110 @@ def test_damaged_wal_and_edited_manifest_stop_start_up_with_a_clear_error(launch
     assert "cannot start" in log and "manifest.json checksum" in log and "Traceback" not in log, log
 
 
+def acked_storage(launch, tmp_path, tag, count, checkpoint_after=-1):
+    """A node's storage after a worker process stored `count` batches of 16 (stores only, one WAL
+    record each) and the node stopped cleanly (SIGTERM): (storage, {j: acknowledged identity ids})."""
+    storage = tmp_path / tag
+    proc, name = start(launch, tag, "-p", f"storage_dir:={storage}", "-p", "snapshot_every:=0",
+                       "-p", "key_size:=26")
+    acks = tmp_path / f"{tag}.jsonl"
+    with open(tmp_path / f"{tag}_worker.log", "wb") as log:
+        rc = subprocess.run([sys.executable, str(WORKER), "--node", name, "--worker", "3", "--ack-file", str(acks),
+                             "--count", str(count), "--stores-only", "--checkpoint-after", str(checkpoint_after)],
+                            stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy(), timeout=120).returncode
+    assert rc == 0, (tmp_path / f"{tag}_worker.log").read_text()
+    proc.kill(signal.SIGTERM)
+    assert proc.proc.returncode == 0, proc.log()
+    stores = {r["j"]: r["ids"] for r in read_acks(acks) if r["op"] == "store"}
+    assert sorted(stores) == list(range(count))
+    return storage, stores
+
+
+def assert_acked_stores_back(memory, stores, lost=()):
+    """Each acknowledged store is back with the same identity ids; those in `lost` are not."""
+    for j, ids in stores.items():
+        reply = memory.store(make_batch(3, j, 16))
+        if j in lost:
+            assert reply.new_identities == 16, j
+        else:
+            assert reply.new_identities == 0 and reply.identity_ids.tolist() == ids, j
+
+
+def test_a_damaged_header_of_the_last_record_is_refused_not_cut_as_a_torn_tail(launch, client_of, tmp_path):
+    """Issue 57: after a clean stop, a flipped byte in the magic or the length field of the last
+    record made it look torn; it was cut as "never acknowledged" and its 16 identities were lost.
+    Now: refused (the payload checks out), kept with wal_accept_loss. Then a torn tail: after a
+    SIGKILL the first bytes of a record are appended (the write a kill cut short): dropped with a
+    warning and a copy, every acknowledged store back."""
+    storage, stores = acked_storage(launch, tmp_path, "hdr", 12)
+    for field, pos in (("length", 5), ("magic", 0)):
+        d = tmp_path / f"hdr_{field}"
+        shutil.copytree(storage, d)
+        (wal,) = d.glob("wal-*.log")
+        raw = flip(wal, record_offsets(wal)[-1] + pos)
+        proc, _ = start(launch, f"hdr_{field}", "-p", f"storage_dir:={d}")
+        assert wait_exit(proc) == 1
+        log = proc.log()
+        assert "cannot start" in log and "WalCorruptError" in log and "payload checks out" in log, log
+        assert "accepting loses nothing" in log and "wal_accept_loss:=true" in log and "Traceback" not in log
+        assert wal.read_bytes() == raw
+    proc, name = start(launch, "hdr_accept", "-p", f"storage_dir:={d}", "-p", "wal_accept_loss:=true")
+    memory = client_of(name)
+    assert memory.stats()["identities"] == 12 * 16
+    assert_acked_stores_back(memory, stores)
+    assert "dropped 0 logged operations" in proc.log() and list(d.glob("wal-*.log.damaged-*"))
+    memory.close()
+    proc.kill(signal.SIGKILL)
+    wal = sorted(d.glob("wal-*.log"))[-1]
+    size = wal.stat().st_size
+    torn = wal_format.encode_arrays(99, wal_format.WAL_STORE, {"states": np.zeros((16, 11), np.float32)})[:50]
+    with open(wal, "ab") as f:
+        f.write(torn)
+    proc, name = start(launch, "hdr_torn", "-p", f"storage_dir:={d}")
+    memory = client_of(name)
+    assert_acked_stores_back(memory, stores)
+    log = proc.log()
+    assert "torn" in log and "never acknowledged" in log and "Traceback" not in log, log
+    assert (d / f"{wal.name}.torn-{size}").read_bytes() == torn
+    proc.kill(signal.SIGTERM)
+    assert proc.proc.returncode == 0, proc.log()
+
+
+def test_a_log_emptied_or_cut_below_its_mark_is_refused_at_start(launch, client_of, tmp_path):
+    """Issue 57: a WAL emptied to 0 bytes after a checkpoint started without a word and lost every
+    store after the checkpoint. wal.mark (written at start, checkpoint and clean stop) records the
+    sequence the log reached; a log that ends before it is refused, naming the missing sequences."""
+    storage, stores = acked_storage(launch, tmp_path, "cut", 12, checkpoint_after=3)  # snapshot at 4
+    empty, cut = tmp_path / "cut_empty", tmp_path / "cut_cut"
+    shutil.copytree(storage, empty)
+    shutil.copytree(storage, cut)
+    (wal,) = empty.glob("wal-*.log")
+    wal.write_bytes(b"")
+    proc, _ = start(launch, "cut_empty", "-p", f"storage_dir:={empty}")
+    assert wait_exit(proc) == 1
+    log = proc.log()
+    assert "cannot start" in log and "WalMissingError" in log and "ends at sequence 4" in log, log
+    assert "8 acknowledged operations (sequences 5-12) are missing" in log and "now 0 bytes" in log, log
+    assert "wal_accept_loss:=true" in log and "Traceback" not in log and wal.stat().st_size == 0
+    (wal,) = cut.glob("wal-*.log")
+    with open(wal, "r+b") as f:
+        f.truncate(record_offsets(wal)[5])   # at a record boundary: sequences 5-9 are left
+    proc, _ = start(launch, "cut_cut", "-p", f"storage_dir:={cut}")
+    assert wait_exit(proc) == 1
+    log = proc.log()
+    assert "3 acknowledged operations (sequences 10-12) are missing" in log and "Traceback" not in log, log
+    proc, name = start(launch, "cut_accept", "-p", f"storage_dir:={cut}", "-p", "wal_accept_loss:=true")
+    memory = client_of(name)
+    assert memory.stats()["identities"] == 9 * 16 and "sequences 10-12" in proc.log()
+    assert_acked_stores_back(memory, stores, lost=(9, 10, 11))
+    proc.kill(signal.SIGTERM)
+    assert proc.proc.returncode == 0, proc.log()
+
+
 def test_snapshot_paths_are_confined_and_services_can_be_turned_off(launch, client_of, tmp_path):
     storage = tmp_path / "storage"
-    proc, name = start(launch, "paths", "-p", f"storage_dir:={storage}", "-p", "snapshot_every:=0")
+    proc, name = start(launch, "paths", "-p", f"storage_dir:={storage}", "-p", "snapshot_every:=0",
+                       "-p", "snapshot_service:=save_restore")
     memory = client_of(name)
     acked = [memory.store(make_batch(4, j, 16)).identity_ids.tolist() for j in range(6)]
     victim = tmp_path / "victim"
@@ -202,7 +325,8 @@ def test_a_snapshot_call_sent_again_with_its_request_id_is_carried_out_once(laun
     """A save or restore whose answer was lost is sent again with its request id (MemoryClient does so after
     resend_s): the node answers from the first call's answer, a refusal too, and neither saves nor restores twice."""
     storage = tmp_path / "storage"
-    proc, name = start(launch, "snapresend", "-p", f"storage_dir:={storage}", "-p", "snapshot_every:=0")
+    proc, name = start(launch, "snapresend", "-p", f"storage_dir:={storage}", "-p", "snapshot_every:=0",
+                       "-p", "snapshot_service:=save_restore")
     memory = client_of(name)
     for j in range(3):
         memory.store(make_batch(4, j, 16))
