@@ -111,7 +111,7 @@ def test_external_bringup_uses_nodes_started_with_ros2_run(launch, tmp_path):
     cfg = yaml.safe_load((tmp_path / "ext" / "config.yaml").read_text())
     assert cfg["params"]["restore_batch"] is True and cfg["params"]["profile"] == "fresh_labels_gate"
     assert cfg["learner"]["label_critic"] == "target" and cfg["learner"]["qt_step_gate"] is True
-    assert cfg["profile"]["name"] == "fresh_labels_gate" and "docs/comcact.md" in \
+    assert cfg["profile"]["name"] == "fresh_labels_gate" and "docs/studies/comcact-qt-step-gate.md" in \
         cfg["profile"]["values"]["qt_step_gate"]["source"]
     assert _evals(tmp_path, "ext") == [0, 100, 200]
     state = torch.load(tmp_path / "ext" / "checkpoints" / "latest.pt", weights_only=True)["state"]

@@ -259,7 +259,7 @@ def test_profiles_name_existing_fields_with_a_source_and_auto_follows_the_task()
             assert k in owner, (profile, k)
             assert isinstance(source, str) and len(source) > 10, (profile, k)
             config_from_dict(owner[k], {k: v})                       # a valid value
-    assert resolve_profile("auto", "ALE/Freeway-v5") == "thesis"
+    assert resolve_profile("auto", "ALE/Freeway-v5") == "atari_100k"
     assert resolve_profile("auto", "CartPole-v1") == "classic_control"
     assert resolve_profile("data_efficient", "ALE/Asterix-v5") == "data_efficient"
 

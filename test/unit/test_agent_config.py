@@ -62,10 +62,37 @@ def test_comcact_profiles_name_existing_fields_with_a_source_and_thesis_is_the_d
     from comper_agent.core.config import COMCACT_PROFILES
     from comper_agent.node_config import ComcactNodeConfig
     owner = {f.name for f in dataclasses.fields(ComcactConfig)} | {f.name for f in dataclasses.fields(ComcactNodeConfig)}
-    assert COMCACT_PROFILES["thesis"] == {} and ComcactNodeConfig().profile == "thesis"
+    assert COMCACT_PROFILES["thesis"] == {} and ComcactNodeConfig().profile == "auto"
     for profile, values in COMCACT_PROFILES.items():
         for k, (v, source) in values.items():
             assert k in owner, (profile, k)
-            assert isinstance(source, str) and ("docs/comcact.md" in source or "the same runs" in source), (profile, k)
-    # each profile only adds to the one before it: fresh_labels_gate = fresh_labels + the gate
-    assert COMCACT_PROFILES["fresh_labels"].items() <= COMCACT_PROFILES["fresh_labels_gate"].items()
+            study = source.split(":")[0]
+            assert study.startswith("docs/studies/") and (DOC.parents[1] / study).is_file(), (profile, k, source)
+
+
+@pytest.mark.parametrize("name, algorithm, env_id, expected", [
+    ("auto", "comcact", "", "fresh_labels_gate"), ("auto", "ddpg", "", "thesis"), ("thesis", "comcact", "", "thesis"),
+    ("auto", "comper", "ALE/Freeway-v5", "atari_100k"), ("auto", "dqn", "CartPole-v1", "classic_control"),
+])
+def test_auto_is_the_best_measured_profile_of_each_task_family(name, algorithm, env_id, expected):
+    from comper_agent.core.config import resolve_comcact_profile, resolve_profile
+    got = resolve_profile(name, env_id) if env_id else resolve_comcact_profile(name, algorithm)
+    assert got == expected
+
+
+def test_atari_100k_is_data_efficient_with_the_gated_10_step_targets():
+    from comper_agent.core.config import COMPER_PROFILES
+    de, best = COMPER_PROFILES["data_efficient"], COMPER_PROFILES["atari_100k"]
+    assert de.items() <= best.items()
+    assert {k: v for k, (v, _) in best.items() if k not in de} == {
+        "n_step": 10, "qt_target_gate": True, "qt_gate_reference": "label", "reduce_overlap": True}
+
+
+def test_the_start_up_log_names_every_difference_from_the_thesis():
+    from comper_agent.core.config import COMCACT_PROFILES, thesis_differences
+    from comper_agent.node_config import ComcactNodeConfig
+    assert thesis_differences(ComcactNodeConfig(), ComcactConfig()) == []
+    best = thesis_differences(ComcactNodeConfig(restore_batch=True, runs_root="elsewhere"),
+                              ComcactConfig(label_critic="target", qt_step_gate=True, seed=3))
+    assert {d.split("=")[0] for d in best} == set(COMCACT_PROFILES["fresh_labels_gate"])     # not paths or seeds
+    assert "label_critic='target' (thesis: 'online')" in best

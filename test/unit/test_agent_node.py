@@ -37,7 +37,7 @@ COMCACT = {**_COMMON, "algorithm": "comcact", "env_id": "InvertedPendulum-v4", "
            "qt_targets": "local", "qt_wait_s": 2.0, "eval_every": 5_000, "eval_episodes": 10, "eval_seed": -1,
            "checkpoint_every": 0, "progress_period_s": 5.0, "restore_batch": False,
            "mode": "lockstep", "num_actors": 1, "policy_period_s": 1.0, "replay_ratio": 1.0, "rate_buffer_steps": 200,
-           "profile": "thesis"}                                               # added with COMCACT_PROFILES
+           "profile": "auto"}                                               # added with COMCACT_PROFILES
 COMPER = {**_COMMON, "algorithm": "comper", "env_id": "ALE/Freeway-v5", "total_frames": 100_000, "max_steps": 0,
           "reduce_every": 100, "reduce_batch": 1_000, "qt_epochs": 0, "qt_targets": "local", "qt_wait_s": 5.0,
           "reducer": "auto", "restore_batch": True, "store_every": 4, "stats_every": 1_000,
@@ -96,9 +96,9 @@ def test_help_lists_every_node_and_learner_parameter(node_cls, cfg_cls):
     ("comper_node", ["-p", "reducer:=x"], "parameter 'reducer': 'x' is not one of"),
     ("comper_node", ["-p", "algorithm:=comper", "-p", "reducer:=memory"], "comper needs QT"),
     ("comper_node", ["-p", "n_step:=3", "-p", "qt_label:=q_sa"], "n_step:=3 needs qt_label:=next_value"),
-    ("comcact_node", ["-p", "profile:=best"], "unknown profile 'best'; one of thesis, fresh_labels, fresh_labels_gate"),
-    ("comcact_node", ["-p", "algorithm:=ddpg", "-p", "profile:=fresh_labels"],
-     "profile:=fresh_labels sets COMCACT's value labels and QT step, which ddpg does not have"),
+    ("comcact_node", ["-p", "profile:=best"], "unknown profile 'best'; one of auto, thesis, fresh_labels_gate"),
+    ("comcact_node", ["-p", "algorithm:=ddpg", "-p", "profile:=fresh_labels_gate"],
+     "profile:=fresh_labels_gate sets COMCACT's value labels and QT step, which ddpg does not have"),
 ])
 def test_a_node_that_cannot_start_says_why_in_one_line_and_exits_1(module, args, message, tmp_path):
     p = subprocess.run([sys.executable, "-m", f"comper_agent.{module}", "--ros-args", "-p",
@@ -168,12 +168,13 @@ def test_graceful_node_ignores_repeated_signals_and_a_stuck_close_times_out():
     (ComperNode, {"env_id": "CartPole-v1"}, {"reduce_batch": 4_000, "profile": "classic_control"}),
     # the command line still wins
     (ComperNode, {"env_id": "CartPole-v1", "reduce_batch": 1_500}, {"reduce_batch": 1_500}),
-    (ComperNode, {"env_id": "ALE/Freeway-v5"}, {"reduce_batch": 1_000, "profile": "thesis"}),   # Table 34
-    (ComcactNode, {}, {"restore_batch": False, "label_critic": "online", "qt_step_gate": False, "profile": "thesis"}),
-    (ComcactNode, {"profile": "fresh_labels_gate"},
-     {"restore_batch": True, "label_critic": "target", "qt_step_gate": True, "profile": "fresh_labels_gate"}),
-    (ComcactNode, {"profile": "fresh_labels", "label_critic": "online"},
-     {"restore_batch": True, "label_critic": "online", "qt_step_gate": False}),
+    (ComperNode, {"env_id": "ALE/Freeway-v5"}, {"reduce_batch": 4_000, "n_step": 10, "profile": "atari_100k"}),
+    (ComperNode, {"env_id": "ALE/Freeway-v5", "profile": "thesis"}, {"reduce_batch": 1_000, "n_step": 1}),  # Table 34
+    (ComcactNode, {}, {"restore_batch": True, "label_critic": "target", "qt_step_gate": True,
+                       "profile": "fresh_labels_gate"}),
+    (ComcactNode, {"algorithm": "ddpg"}, {"restore_batch": False, "profile": "thesis"}),
+    (ComcactNode, {"profile": "thesis"}, {"restore_batch": False, "label_critic": "online", "qt_step_gate": False}),
+    (ComcactNode, {"label_critic": "online"}, {"restore_batch": True, "label_critic": "online", "qt_step_gate": True}),
 ])
 def test_a_profile_sets_node_and_learner_parameters_and_the_command_line_still_wins(node_cls, given, expected):
     """What AgentNode.__init__ does with a profile, without the bring-up: node parameters first (algorithm,

@@ -24,7 +24,7 @@ from rclpy.node import Node
 
 from comper_msgs_py.params import config_to_dict
 from comper_msgs_py.qos import HAND_OVER_S
-from comper_msgs_py.ros_params import UnknownParameter, declare_config, refuse_undeclared
+from comper_msgs_py.ros_params import declare_config, refuse_undeclared
 from comper_msgs_py.service_client import ServiceError, wait_for_services
 from comper_sim.client import SimClient
 from comper_sim.core import episode_over
@@ -37,6 +37,7 @@ from .episodes import SUMMARY_QOS, LearnerTopics, TrainingEpisodes
 from .experience_checkpoint import ExperienceCheckpoint
 from .recording_link import RecordingLink, record_topics
 from .memory_link import MemoryLink
+from .core.config import thesis_differences
 from .node_config import AgentRunConfig, redefault
 from .qt_diagnostics import QTDiagnostics
 
@@ -71,6 +72,8 @@ class AgentNode(Node):
     CSV_COLUMNS: list = []
     QT_START_HINT = ""                       # extra arguments in the hint for starting a QT trainer
     PROFILES: dict = {}                      # profile -> {field: (value, source)} (core/config.py); {} = none
+    #: (profile parameter, node parameters declared so far) -> the profile's name (resolves auto; refuses others)
+    RESOLVE_PROFILE = None
     TIMED_CALLS = ("sim", "memory", "qt", "memory_reduce")   # phases made of service calls
     HAND_OVER_S = HAND_OVER_S   # comper_msgs_py.qos: the longest wait for the last results to be acknowledged
 
@@ -112,14 +115,8 @@ class AgentNode(Node):
         command line and parameter files still win."""
         if not self.PROFILES or "profile" not in values:
             return {}
-        self.profile = self._resolve_profile(values["profile"], values["env_id"])
+        self.profile = self.RESOLVE_PROFILE(values["profile"], values)
         return {k: v for k, (v, _) in self.PROFILES[self.profile].items()}
-
-    def _resolve_profile(self, name: str, env_id: str) -> str:
-        """The profile a ``profile`` value names (a node may resolve aliases such as auto)."""
-        if name not in self.PROFILES:
-            raise ValueError(f"unknown profile {name!r}; one of {', '.join(self.PROFILES)}")
-        return name
 
     def _configure(self) -> None:
         """Algorithm flags, ``embedded_params`` and node-specific publishers (before the bring-up)."""
@@ -173,12 +170,6 @@ class AgentNode(Node):
         try:
             # every node built from this command line has declared its parameters: a -p none declares is a typo
             refuse_undeclared(nodes, self.NODE_NAME)
-        except UnknownParameter:
-            if self.embedded is not None:
-                self.embedded.destroy()
-            self.run_dir.remove_if_empty()      # a refused start leaves no run directory behind
-            raise
-        try:
             if p.record:
                 topics = record_topics(self.get_fully_qualified_name(), p.sim_node,
                                        p.memory_node if self.uses_memory else None)
@@ -187,6 +178,7 @@ class AgentNode(Node):
         except BaseException:
             if self.embedded is not None:
                 self.embedded.destroy()
+            self.run_dir.remove_if_empty()      # a start refused here leaves no run directory behind
             raise
         self.spinner = Spinner(nodes, self.context).start()
         try:
@@ -327,6 +319,10 @@ class AgentNode(Node):
         self.diagnostics = QTDiagnostics(p.diagnostics_every, self.metrics, self.scalars, self.ptimers)
         start_step = self.step
         self.log.info(f"{self._start_line()}; run dir {run.dir.path}  (Ctrl-C stops and saves a checkpoint)")
+        if self.PROFILES:
+            diffs = thesis_differences(self.p, self.cfg)
+            self.log.info(f"profile {self.profile} (profile:=thesis is the thesis); differs from it in {len(diffs)} "
+                          "values: " + ("; ".join(diffs) or "none"))
         if not self.scalars.available and p.tensorboard:
             self.log.warning(f"TensorBoard scalars off: {self.scalars.error}")
         self._before_loop()

@@ -56,7 +56,7 @@ from .agent_run import next_due, resume_text
 from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
 from .evaluation import Evaluation
 from .node_config import ComcactNodeConfig
-from .core.config import COMCACT_PROFILES, ComcactConfig, DDPGConfig
+from .core.config import COMCACT_PROFILES, ComcactConfig, DDPGConfig, resolve_comcact_profile
 from .core.memory_schedule import Row, reduce_due, rows_to_transitions, updates_before_reduce
 from .policy_weights import PolicyPublisher
 
@@ -70,6 +70,7 @@ class ComcactNode(AgentNode):
     CONFIG = ComcactNodeConfig
     LEARNER_CONFIGS = {"comcact": ComcactConfig, "ddpg": DDPGConfig}
     PROFILES = COMCACT_PROFILES
+    RESOLVE_PROFILE = staticmethod(lambda name, values: resolve_comcact_profile(name, values["algorithm"]))
     # LEARNER_OVERRIDES num_threads 1 (AgentNode): the 400/300 nets at batch 64 gain nothing from a second
     # intra-op thread on the 2-core machine, and the ROS executor threads need the other core (docs/comcact.md)
     OBS_DTYPE = np.float32
@@ -83,9 +84,6 @@ class ComcactNode(AgentNode):
         # async: the actors store into the memory node, so DDPG samples it too (the memory node reduces)
         self.uses_memory = self.comcact or self.async_mode
         self.reducer = "qt_trainer" if self.comcact else ("memory" if self.async_mode else "none")
-        if not self.comcact and self.profile != "thesis":
-            raise ValueError(f"profile:={self.profile} sets COMCACT's value labels and QT step, which ddpg does not "
-                             "have; use profile:=thesis with algorithm:=ddpg")
         self.policy_pub = (PolicyPublisher(f"{self.get_fully_qualified_name()}/policy", f"{self.get_name()}_policy")
                            if self.async_mode else None)
         self.fleet = None

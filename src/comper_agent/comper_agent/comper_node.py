@@ -101,9 +101,8 @@ class ComperNode(AgentNode):
              "comper_m": "COMPER-M (TM sampling, QT target)", "dqn": "DQN baseline (replay + target network)"}
 
     PROFILES = COMPER_PROFILES
+    RESOLVE_PROFILE = staticmethod(lambda name, values: resolve_profile(name, values["env_id"]))
 
-    def _resolve_profile(self, name: str, env_id: str) -> str:
-        return resolve_profile(name, env_id)      # auto: thesis for ALE games, classic_control otherwise
 
     def _configure(self) -> None:
         p = self.p

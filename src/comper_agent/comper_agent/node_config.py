@@ -146,12 +146,12 @@ class ComperNodeConfig(AgentRunConfig):
         "...) or a gymnasium task with vector observations (CartPole-v1, Acrobot-v1, MountainCar-v0); "
         "embedded: given to the sim node; external: must match the running sim node")
     profile: str = param(
-        "auto", "named set of learner defaults (core/config.py COMPER_PROFILES, each value with its source; "
-        "-p name:=value still wins): thesis = Algorithm 7 and Tables 32-35; data_efficient = short Atari "
-        "budgets (Adam, one update per step, 4 frames, double DQN; Dopamine's atari_100k DER settings); "
-        "classic_control = vector tasks; auto = thesis for ALE games, classic_control otherwise",
-        thesis="thesis (the only protocol the thesis runs is Atari)",
-        choices=("auto", "thesis", "data_efficient", "classic_control"))
+        "auto", "named set of learner defaults (core/config.py COMPER_PROFILES; -p name:=value still wins): "
+        "thesis = Algorithm 7 and Tables 32-35; data_efficient = short Atari budgets (Adam, one update per step, "
+        "4 frames, double DQN: Dopamine's atari_100k DER settings); atari_100k = data_efficient with 10-step targets "
+        "and the QT-target gate's label test; classic_control = vector tasks; auto = atari_100k for ALE games, "
+        "classic_control otherwise", thesis="thesis",
+        choices=("auto", "thesis", "data_efficient", "atari_100k", "classic_control"))
     eval_every: int = param(
         -1, "agent steps between evaluations (eval_episodes greedy episodes on a separate environment; 0 = "
         "never); -1 = never for ALE games (the protocol reports training episodes), 5,000 for vector tasks",
@@ -194,11 +194,11 @@ class ComcactNodeConfig(AgentRunConfig):
         "Walker2d-v4, HalfCheetah-v4, InvertedDoublePendulum-v4, Pendulum-v1, ... (embedded: given to "
         "the sim node; external: must match the running sim node)")
     profile: str = param(
-        "thesis", "named set of COMCACT defaults (core/config.py COMCACT_PROFILES, each value with the measurement "
-        "behind it; -p name:=value still wins): thesis = Algorithm 8 and appendix B; fresh_labels = restore_batch "
-        "true, label_critic target (labels that follow the target critic); fresh_labels_gate = the same plus "
-        "qt_step_gate true, the best configuration measured (docs/comcact.md); ddpg takes only thesis",
-        thesis="thesis", choices=tuple(COMCACT_PROFILES))
+        "auto", "named set of learner defaults (core/config.py COMCACT_PROFILES; -p name:=value still wins): "
+        "thesis = Algorithm 8 and appendix B; fresh_labels_gate = restore_batch true, label_critic target and "
+        "qt_step_gate true (value labels that follow the target critic, and the QT step only where QT is closer to "
+        "the DDPG target than the critic); auto = fresh_labels_gate for comcact, thesis for ddpg",
+        thesis="thesis", choices=("auto", *COMCACT_PROFILES))
     total_steps: int = param(50_000, "agent (environment) steps of the run", thesis="50,000 (chapter 6)",
                              minimum=1)
     warmup_steps: int = param(

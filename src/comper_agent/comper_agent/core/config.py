@@ -20,6 +20,7 @@ from comper_msgs_py.params import param
 __all__ = ["QTConfig", "ComcactQTConfig", "ComcactConfig", "DDPGConfig", "ComperConfig", "ALL_CONFIGS",
            "parameter_table_markdown",
            "DQNConfig", "qt_config_for", "QT_CONFIGS", "COMPER_PROFILES", "COMCACT_PROFILES", "resolve_profile",
+           "resolve_comcact_profile", "thesis_differences",
            "profile_table_markdown"]
 
 _NEXT_VALUE_DEVIATION = (
@@ -430,6 +431,10 @@ COMPER_PROFILES: dict[str, dict[str, tuple]] = {
         "reduce_batch": (4_000, "keeps the reduction at the stores' pace (as classic_control; not measured on "
                                 "Atari): " + _PACE),
     },
+    # The default on ALE games: data_efficient with 10-step targets and the QT-target gate's label test, the one
+    # COMPER configuration measured above random play on Asterix, Seaquest and Freeway with 5 seeds each
+    # (docs/studies/comper-qt-gate-label.md); reduce_overlap as those runs had it
+    "atari_100k": {},      # filled below from data_efficient
     # Vector observations (CartPole-v1, Acrobot-v1, MountainCar-v0), which the thesis does not run:
     # rl-baselines3-zoo's DQN settings for CartPole-v1 (hyperparams/dqn.yml), mapped onto one update every
     # train_frequency steps. Checked with the learner alone on CartPole-v1: 3 of 3 seeds at 500 by 35,000 steps
@@ -456,37 +461,51 @@ COMPER_PROFILES: dict[str, dict[str, tuple]] = {
 }
 
 
-# comcact_node profiles: the configurations measured in docs/comcact.md, one parameter away. Unlike COMPER's,
-# their sources are this suite's own benchmark runs (50,000 steps, 3-5 seeds, 10 evaluation episodes every 5,000)
-_FRESH = {
-    "restore_batch": (True, "docs/comcact.md, four-task ablation (2026-12-02): with label_critic target, above the "
-                            "thesis's COMCACT on Hopper-v4, Walker2d-v4, HalfCheetah-v4 and InvertedDoublePendulum-v4 "
-                            "(last 3 evaluations, 3 seeds); at DDPG's level on Walker2d-v4 and "
-                            "InvertedDoublePendulum-v4"),
-    "label_critic": ("target", "the same runs: QT's target error below the critic's own TD error in 9 of 9 runs "
-                               "(the thesis's labels: above it in every run)"),
+COMPER_PROFILES["atari_100k"] = {
+    **COMPER_PROFILES["data_efficient"],
+    "n_step": (10, "10-step targets: above 1-step COMPER on all three games (docs/studies/comper-n-step-compact-memory.md)"),
+    "qt_target_gate": (True, "docs/studies/comper-qt-target-gate.md"),
+    "qt_gate_reference": ("label", "docs/studies/comper-qt-gate-label.md"),
+    "reduce_overlap": (True, "the engineering setting of the runs behind this profile: reductions overlap learning "
+                             "on the second core"),
 }
+
+# comcact_node profiles. Unlike COMPER's, their sources are this suite's own benchmark runs (50,000 steps, 3-5 seeds,
+# 10 evaluation episodes every 5,000; docs/results.md)
 #: profile -> {field: (value, source)}, as COMPER_PROFILES; thesis = the defaults (Algorithm 8, appendix B)
 COMCACT_PROFILES: dict[str, dict[str, tuple]] = {
     "thesis": {},
-    "fresh_labels": dict(_FRESH),
+    # the default of algorithm comcact (resolve_comcact_profile)
     "fresh_labels_gate": {
-        **_FRESH,
-        "qt_step_gate": (True, "docs/comcact.md, the QT-step gate (2026-12-02, IDP and 5 Walker2d seeds "
-                               "2026-12-03): on top of fresh labels, at DDPG's level on Walker2d-v4 and "
-                               "HalfCheetah-v4 (5 seeds each) and InvertedDoublePendulum-v4 (3 seeds, at the "
-                               "ceiling, 0.4 % below DDPG), below it on Hopper-v4; above fresh labels alone on the "
-                               "mean at 50,000 steps on Walker2d-v4 and HalfCheetah-v4, intervals overlapping"),
+        "restore_batch": (True, "docs/studies/comcact-four-task-ablation.md: with label_critic target, above the "
+                                "thesis profile on all four tasks"),
+        "label_critic": ("target", "docs/studies/comcact-four-task-ablation.md: QT's target error below the "
+                                   "critic's own TD error in every run"),
+        "qt_step_gate": (True, "docs/studies/comcact-qt-step-gate.md: at DDPG's level on Walker2d-v4, "
+                               "HalfCheetah-v4 and InvertedDoublePendulum-v4"),
     },
 }
 
 
 def resolve_profile(name: str, env_id: str) -> str:
-    """``profile`` auto -> thesis for ALE games (ALE/...), classic_control for other tasks."""
+    """comper_node's ``profile``: auto -> atari_100k for ALE games (ALE/...), classic_control for other tasks."""
     if name == "auto":
-        return "thesis" if env_id.startswith("ALE/") else "classic_control"
+        return "atari_100k" if env_id.startswith("ALE/") else "classic_control"
     if name not in COMPER_PROFILES:
         raise ValueError(f"unknown profile {name!r}; one of auto, {', '.join(COMPER_PROFILES)}")
+    return name
+
+
+def resolve_comcact_profile(name: str, algorithm: str) -> str:
+    """comcact_node's ``profile``: auto -> fresh_labels_gate for comcact, thesis for the DDPG baseline (the
+    profiles set COMCACT's labels and QT step, which ddpg does not have)."""
+    if name == "auto":
+        return "fresh_labels_gate" if algorithm == "comcact" else "thesis"
+    if name not in COMCACT_PROFILES:
+        raise ValueError(f"unknown profile {name!r}; one of auto, {', '.join(COMCACT_PROFILES)}")
+    if algorithm != "comcact" and name != "thesis":
+        raise ValueError(f"profile:={name} sets COMCACT's value labels and QT step, which ddpg does not have; "
+                         "use profile:=thesis (or auto) with algorithm:=ddpg")
     return name
 
 
@@ -506,6 +525,24 @@ def profile_table_markdown(node_config=None, node: str = "comper") -> str:
         for k, (v, src) in values.items():
             rows.append(f"| `{name}` | `{k}` | `{v}` | `{defaults[k]}` | {src} |")
     return "\n".join(rows) + "\n"
+
+
+def thesis_differences(*configs) -> list[str]:
+    """What a run does differently from ``profile:=thesis``, for the start-up log: each parameter with a thesis
+    value whose value is not the thesis profile's ('name=value (thesis: default)'), whether a profile or the command
+    line set it. The thesis profile's own corrections of the thesis text are listed in method.md 6.
+    configs: config instances (node parameters, learner hyper-parameters)."""
+    from comper_msgs_py.params import spec_of
+    out = []
+    for cfg in configs:
+        for f, default, _ in spec_of(type(cfg)):
+            if not (f.metadata.get("thesis") or f.metadata.get("deviation")):
+                continue            # engineering settings (paths, threads, timeouts) have no thesis value
+            value = getattr(cfg, f.name)
+            same = (list(value) == list(default)) if isinstance(value, (list, tuple)) else value == default
+            if not same:
+                out.append(f"{f.name}={value!r} (thesis: {default!r})")
+    return out
 
 
 def parameter_table_markdown(cls) -> str:
