@@ -7,11 +7,17 @@ Why no identity within delta can be missed, with r = sqrt(delta):
   P(x - y) is at most |x - y| (1 + e_o), e_o measured from |P P^T - I|. z is computed in
   float64; its rounding error is below (D + 2) eps64 (|x| + 1) per coordinate, and ``err``
   covers query and stored point.
-* Cells are cubes of side c >= (r (1 + e_o) + err)(1 + 1e-7): two points within r have
-  cell indices floor((z - o)/c) that differ by at most 1 per axis (the relative rounding of
-  the division, < 1e-9 cells, is far below the 1e-7 margin). Indices are clipped to
-  [0, 2^21 - 2] (monotone, 1-Lipschitz: neighbours stay neighbours), so c can also be
-  made coarse enough for any delta, 0 included.
+* Cells are cubes of side c >= (r (1 + e_o) + err)(1 + 1e-5): two points within r have
+  cell indices t = floor((z - o)/c) that differ by at most 1 per axis (the rounding of the
+  division, 4 eps |t| < 7.6e-6 cells while |t| <= 2^33, is below the 1e-5 margin). Indices
+  wrap modulo 2^21 - 1 (neighbours stay neighbours modulo it), so keys far outside the fitted
+  extent spread over the cells instead of piling up in the edge cells (clipping them put a
+  batch that jumped outside the extent into one cell: quadratic in the batch).
+* ``err`` grows with the key norm, so the grid takes only keys whose norm is within
+  ``norm_cap`` (fixed at each fit: their rounding widens the cells by at most 5 %) and whose
+  |t| is at most 2^32 (the wrap is exact); the others ("wide" keys, e.g. one value of 1e20)
+  are searched by their norm (``norm_margin``: | |x| - |y| | <= |x - y|), so one huge value
+  cannot coarsen the cells of every other key.
 * A cell's code packs its m indices (21 bits each, lexicographic), so the 3 cells along the
   last axis of each (m-1)-neighbour column are one contiguous code range: a query costs 3^(m-1)
   pairs of ``np.searchsorted`` over the sorted codes (O(log n), vectorised over the batch).
@@ -31,7 +37,7 @@ import numpy as np
 
 from .similarity import SUBSPACE, U32
 
-__all__ = ["GridCells", "GRID_MAX", "NORM_HEADROOM"]
+__all__ = ["GridCells", "GRID_MAX", "NORM_HEADROOM", "PERIOD", "RAW_LIMIT"]
 
 GRID_BITS = 21
 # Largest cell index: one below 2^21 - 1, so the largest code (all axes at GRID_MAX) plus one, the
@@ -39,8 +45,13 @@ GRID_BITS = 21
 # negative number and queries in the top corner of the grid found nothing).
 GRID_MAX = (1 << GRID_BITS) - 2
 _EPS64 = float(np.finfo(np.float64).eps)
+PERIOD = GRID_MAX + 1  # cell indices wrap modulo this (0 .. GRID_MAX)
 NORM_HEADROOM = 4.0    # cells are sized for keys up to this many times the largest norm seen
 _GRID_HEADROOM = 16.0  # the grid spans this many times the fitted (2nd-98th percentile) extent
+_CELL_MARGIN = 1e-5    # relative cell margin: covers the division's rounding for |t| <= 2^33
+RAW_LIMIT = float(1 << 32)  # grid keys have |t| <= this (queries up to 2 more): exact wrap
+_SPAN_CELLS = float(1 << 31)  # the fitted extent (x _GRID_HEADROOM) spans at most this many cells
+_CAP_ERR = 0.05        # grid keys' rounding (``err``) widens the fitted cells by at most this fraction
 
 
 class GridCells:
@@ -55,9 +66,11 @@ class GridCells:
         rng = np.random.default_rng(seed)
         q, _ = np.linalg.qr(rng.standard_normal((self.key_dim, self.mf)))
         self.set_projection(np.ascontiguousarray(q.T))
-        self.max_key_norm = 0.0
+        self.max_key_norm = 0.0                 # largest norm of the keys the grid takes
+        self.norm_cap = float("inf")            # largest norm of a key the grid stores (set by fit)
         self.origin: np.ndarray | None = None
         self.cell = np.zeros(self.m)            # side of the cells, per axis
+        self.ext_lo = self.ext_hi = np.zeros(self.m)  # the fitted extent (z of the cell axes)
         self.zc0 = np.zeros(self.mf)            # stored projections are fl32(z - zc0)
         sh = [GRID_BITS * (self.m - 1 - d) for d in range(self.m)]
         self._shift = np.asarray(sh, dtype=np.int64)
@@ -94,11 +107,28 @@ class GridCells:
         top = V[:, np.argsort(w)[::-1][:self.mf]].T  # [mf, d] orthonormal rows, largest first
         self.set_projection(top if R is None else top @ R)
 
-    def observe(self, keys: np.ndarray) -> bool:
-        """Track the largest key norm; True if it grew."""
-        if not len(keys):
+    @staticmethod
+    def norms(keys: np.ndarray) -> np.ndarray:
+        """float64 norms |x| of float32 keys [n, D] (rows of 2 MiB at a time for wide keys)."""
+        keys = np.asarray(keys)
+        n = len(keys)
+        out = np.empty(n)
+        step = max(1, (1 << 18) // max(1, keys.shape[1] if keys.ndim == 2 else 1))
+        for s in range(0, n, step):
+            k = keys[s:s + step].astype(np.float64)
+            out[s:s + step] = np.sqrt(np.einsum("ij,ij->i", k, k))
+        return out
+
+    def norm_margin(self, norm) -> np.ndarray | float:
+        """Largest difference of computed norms of two keys within r, for keys of norm up to
+        ``norm``: r, plus the float64 rounding of both norms ((D/2 + 1) eps |x| each, taken 4x)."""
+        return self.r * (1.0 + 1e-6) + 4.0 * (self.key_dim + 3) * _EPS64 * (np.asarray(norm) + self.r + 1.0)
+
+    def observe(self, norms: np.ndarray) -> bool:
+        """Track the largest norm of the keys the grid takes (``grid_query``); True if it grew."""
+        if not len(norms):
             return False
-        nrm = float(np.sqrt(np.einsum("ij,ij->i", keys, keys, dtype=np.float64).max()))
+        nrm = float(np.max(norms))
         if nrm > self.max_key_norm:
             self.max_key_norm = nrm
             return True
@@ -130,7 +160,7 @@ class GridCells:
         """Smallest exact cell side for keys up to ``headroom`` x the largest norm seen. Cells are
         made for 4x the norm (``NORM_HEADROOM``), so keys whose norm keeps growing (drift) force
         a coarser cell (a rebuild) only each time their norm quadruples, not at every store."""
-        return (self.r * (1.0 + self.e_o) + self.err(self.max_key_norm * headroom)) * (1.0 + 1e-7) + 1e-300
+        return (self.r * (1.0 + self.e_o) + self.err(self.max_key_norm * headroom)) * (1.0 + _CELL_MARGIN) + 1e-300
 
     def needs_coarser_cell(self) -> bool:
         return self.origin is not None and self.min_cell() > float(self.cell.min())
@@ -154,21 +184,30 @@ class GridCells:
         rp = self.radius_proj() + cast * (1.0 + 1e-7)
         return d2 <= rp * rp * (1.0 + 1e-9) + 1e-300
 
-    def near64(self, zi: np.ndarray, zj: np.ndarray) -> np.ndarray:
-        """The same filter between two float64 projections (pairs inside one batch)."""
+    def near64(self, zi: np.ndarray, zj: np.ndarray, norm: np.ndarray | None = None) -> np.ndarray:
+        """The same filter between two float64 projections (pairs inside one batch; wide keys).
+        norm: per pair, the larger norm of the two keys (wide keys: their own rounding bound);
+        None: grid keys (``radius_proj``)."""
         d = zi - zj
         d2 = np.einsum("ij,ij->i", d, d)
-        rp = self.radius_proj()
+        if norm is None:
+            rp = self.radius_proj()
+        else:
+            err = 2.0 * (self.key_dim + 2) * _EPS64 * (np.asarray(norm) + self.r + 1.0) * 4.0
+            rp = (self.r * (1.0 + self.e_o) + err * float(np.sqrt(self.mf))) * (1.0 + 1e-7)
         return d2 <= rp * rp * (1.0 + 1e-9) + 1e-300
 
     # ------------------------------------------------------------------ cells
-    def fit(self, z: np.ndarray) -> None:
+    def fit(self, z: np.ndarray, norms: np.ndarray) -> None:
         """Per-axis cells over a robust extent: the 2nd-98th percentile range of the points,
         widened _GRID_HEADROOM-fold around its centre (so keys may drift far before they leave
         the grid, and one outlying value cannot stretch the cells); never finer than the
-        exactness bound ``min_cell``. Points outside are clipped into the edge cells (still
-        exact); the index counts them and re-fits."""
-        c = self.min_cell(NORM_HEADROOM)
+        exactness bound ``min_cell``. Points outside wrap around (still exact); the index counts
+        them and re-fits. ``norm_cap``: the largest norm whose rounding widens these cells by at
+        most _CAP_ERR; the cells are sized for the largest norm up to it (norms: the points' |x|)."""
+        rcell = np.full(self.m, self.r * (1.0 + self.e_o) * (1.0 + _CELL_MARGIN))
+        span = np.zeros(self.m)
+        centre = np.zeros(self.m)
         if len(z):
             sub = z if len(z) <= 20000 else z[np.random.default_rng(self.seed).choice(
                 len(z), 20000, replace=False)]
@@ -176,14 +215,48 @@ class GridCells:
             lo, hi = np.quantile(zc, [0.02, 0.98], axis=0) if len(zc) >= 16 else (
                 zc.min(axis=0), zc.max(axis=0))
             span = np.maximum(hi - lo, 0.0)
-            cell = np.maximum(c, span * _GRID_HEADROOM / (GRID_MAX - 4))
-            self.origin = (lo + hi) / 2.0 - cell * (GRID_MAX / 2.0)
-            self.zc0 = np.median(sub, axis=0)
-        else:
-            cell = np.full(self.m, c)
-            self.origin = -cell * (GRID_MAX / 2.0)
-            self.zc0 = np.zeros(self.mf)
+            centre = (lo + hi) / 2.0
+        # the grid's keys' rounding widens the cells by at most _CAP_ERR of a cell that spans the
+        # extent in 2^21 (r at least): err(NORM_HEADROOM * cap) <= _CAP_ERR * that cell
+        per_norm = 2.0 * (self.key_dim + 2) * _EPS64 * 4.0 * NORM_HEADROOM
+        coarse = np.maximum(rcell, span * _GRID_HEADROOM / (GRID_MAX - 4))
+        self.norm_cap = max(0.0, _CAP_ERR * float(coarse.min()) / per_norm - 1.0)
+        norms = np.asarray(norms, dtype=np.float64)
+        self.observe(norms[norms <= self.norm_cap + self.norm_margin(2.0 * self.norm_cap + 1.0)])
+        # cells: the exact side, or finer than the extent needs only when the extent spans
+        # more than 2^30 of them (keys _GRID_HEADROOM / 2 extents away then still wrap exactly)
+        cell = np.maximum(np.maximum(rcell, span * _GRID_HEADROOM / _SPAN_CELLS), self.min_cell(NORM_HEADROOM))
+        half = np.maximum(span * (_GRID_HEADROOM / 2.0), cell * (GRID_MAX / 2.0))
+        self.ext_lo, self.ext_hi = centre - half, centre + half
+        self.origin = centre - cell * (GRID_MAX / 2.0)
+        self.zc0 = np.median(sub, axis=0) if len(z) else np.zeros(self.mf)
         self.cell = cell
+
+    def outside(self, z: np.ndarray) -> np.ndarray:
+        """bool [n]: points outside the fitted extent (the index re-fits once they are many)."""
+        zc = z[:, :self.m]
+        return ((zc < self.ext_lo) | (zc > self.ext_hi)).any(axis=1)
+
+    def reach(self, z: np.ndarray) -> np.ndarray:
+        """max over the cell axes of |t|, t = (z - o) / c (the unwrapped cell index), per point."""
+        if not len(z):
+            return np.zeros(0)
+        return np.abs((z[:, :self.m] - self.origin) / self.cell).max(axis=1)
+
+    def grid_store(self, z: np.ndarray, norms: np.ndarray) -> np.ndarray:
+        """bool [n]: which points the grid stores (the others are wide keys)."""
+        return (norms <= self.norm_cap) & (self.reach(z) <= RAW_LIMIT)
+
+    def grid_query(self, z: np.ndarray, norms: np.ndarray) -> np.ndarray:
+        """bool [n]: which queries may have a grid key within r (and have exact wrapped cells):
+        a key within r of a grid key has a norm within ``norm_margin`` and a |t| within 1 + 1e-5."""
+        cap = self.norm_cap
+        return (norms <= cap + self.norm_margin(2.0 * cap + 1.0)) & (self.reach(z) <= RAW_LIMIT + 2.0)
+
+    def wide_query(self, z: np.ndarray, norms: np.ndarray) -> np.ndarray:
+        """bool [n]: which batch items may be within r of a wide key (pairs inside a batch)."""
+        cap = self.norm_cap
+        return (norms > cap - self.norm_margin(2.0 * cap + 1.0)) | (self.reach(z) > RAW_LIMIT - 2.0)
 
     def coarsen(self) -> None:
         """Keep the fitted extent, but make the cells at least the exact side for 4x the norm."""
@@ -196,19 +269,31 @@ class GridCells:
         return np.floor((z[:, :self.m] - self.origin) / self.cell)
 
     def cells(self, z: np.ndarray) -> np.ndarray:
+        """Cell indices wrapped modulo PERIOD (points with ``reach`` <= RAW_LIMIT + 2 only)."""
         t = self.raw_cells(z)
-        np.clip(t, 0, GRID_MAX, out=t)
-        return t.astype(np.int64)
+        np.clip(t, -2.0 ** 52, 2.0 ** 52, out=t)   # finite int64 for any input; exact below 2^33
+        return np.mod(t.astype(np.int64), PERIOD)
 
     def ranges(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per query and neighbour column: (lo_code, hi_code, valid) [n, 3^(m-1)]."""
+        """Per query and neighbour column: (lo_code, hi_code, valid) [n, k]: k = 3^(m-1) code
+        ranges (the 3 cells along the last axis of each neighbour column, wrapped head indices),
+        and 3^(m-1) more when a query's last index is at either end (the neighbour that wraps
+        to the other end of the last axis; valid only for those queries)."""
         m = self.m
         last = cells[:, m - 1]
         lo_last = np.maximum(last - 1, 0)[:, None]
         hi_last = np.minimum(last + 1, GRID_MAX)[:, None]
+        edge = (last == 0) | (last == GRID_MAX)
         if m == 1:
-            return lo_last, hi_last, np.ones_like(lo_last, dtype=bool)
-        head = cells[:, None, :m - 1] + self._offs[None, :, :]       # [n, k, m-1]
-        valid = ((head >= 0) & (head <= GRID_MAX)).all(axis=2)
-        base = (head << self._shift[None, None, :m - 1]).sum(axis=2)
-        return base + lo_last, base + hi_last, valid
+            base = np.zeros((len(cells), 1), np.int64)
+        else:
+            head = np.mod(cells[:, None, :m - 1] + self._offs[None, :, :], PERIOD)  # [n, k, m-1]
+            base = (head << self._shift[None, None, :m - 1]).sum(axis=2)
+        lo, hi = base + lo_last, base + hi_last
+        valid = np.ones(lo.shape, dtype=bool)
+        if edge.any():
+            w = np.where(last == 0, GRID_MAX, 0)[:, None]   # the wrapped neighbour on the last axis
+            lo = np.concatenate([lo, base + w], axis=1)
+            hi = np.concatenate([hi, base + w], axis=1)
+            valid = np.concatenate([valid, np.repeat(edge[:, None], base.shape[1], axis=1)], axis=1)
+        return lo, hi, valid

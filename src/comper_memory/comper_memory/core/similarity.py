@@ -84,8 +84,8 @@ class SimilarityIndex:
             yield s, self.source.keys_of(ids[s:s + step])
 
     def candidates_of(self, y: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """Yield (query, id) arrays, chunks of disjoint queries: a superset of the live stored
-        identities within delta of each query."""
+        """Yield (query, id) arrays: a superset of the live stored identities within delta of each
+        query (a chunk holds each of its queries' candidates once; a query may recur in a later chunk)."""
         raise NotImplementedError
 
     def batch_pairs(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -119,7 +119,9 @@ class SimilarityIndex:
                 first = np.ones(len(q), dtype=bool)
                 first[1:] = q[1:] != q[:-1]
                 q, c, d = q[first], c[first], d[first]
-                better = d < best_d[q]  # chunks hold disjoint queries; kept for safety
+                # a query may come back in a later chunk (the grid engine's wide keys): nearer,
+                # or as near with a lower id, wins
+                better = (d < best_d[q]) | ((d == best_d[q]) & (c < existing[q]))
                 existing[q[better]] = c[better]
                 best_d[q[better]] = d[better]
         batch = np.full(n, -1, dtype=np.int64)

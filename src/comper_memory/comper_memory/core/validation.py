@@ -11,6 +11,8 @@ from .results import MemoryInputError
 
 __all__ = ["validate_store", "schema_of", "index_key_size"]
 
+_KEY_ABS_MAX = MemoryConfig.__dataclass_fields__["max_key_abs"].metadata["maximum"]
+
 
 def schema_of(t: Transitions) -> dict:
     """obs_shape, obs_dtype, action_shape, action_dtype and key_size of a validated batch."""
@@ -80,15 +82,17 @@ def validate_store(t: Transitions, config: MemoryConfig, schema: dict | None,
         raise MemoryInputError("store: keys hold NaN or Inf (values overflow float32)")
     bound = config.max_key_abs
     if not replay and keys.size:  # replay: the record was accepted under its own bound
-        mag = np.abs(keys).max(axis=1)
+        # compared in float64: a float32 comparison rounds the bound (3e38 -> 3.0000000054977558e38),
+        # so the check and the position it names would disagree
+        mag = np.abs(keys).max(axis=1).astype(np.float64)
         if float(mag.max()) > bound:
             i = int(np.argmax(mag > bound))
-            j = int(np.argmax(np.abs(keys[i]) > bound))
+            j = int(np.argmax(np.abs(keys[i]).astype(np.float64) > bound))
             obs = int(np.prod(t.obs_shape, dtype=np.int64))
             part = ("state" if j < obs else "action" if j < key - obs - 1 else
                     "reward" if j == key - obs - 1 else "next_state")
             raise MemoryInputError(
                 f"store: transition {i} has key value {float(keys[i, j]):g} ({part}, key position "
                 f"{j}) beyond max_key_abs ({bound:g}); nothing of this batch was stored (raise "
-                f"max_key_abs or rescale the observations)")
+                f"max_key_abs, at most {_KEY_ABS_MAX:g}, or rescale the observations)")
     return clean, keys
