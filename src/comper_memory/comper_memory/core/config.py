@@ -84,9 +84,10 @@ class MemoryConfig:
     max_key_abs: float = param(
         1e8, "largest magnitude of any key value (observation, action, reward; uint8 frames after "
         "frame_scale); a store holding a larger value is refused whole with the transition and key "
-        "position named. It bounds the index's float64 rounding margin (at the bound: 0.25 % of "
-        "sqrt(delta) = 0.01 for 26-d keys), so one huge value cannot coarsen the index for every "
-        "later store. Leaves room for step counters in observations (1e8 steps)",
+        "position named. Any bound up to 3e38 keeps stores fast: keys too large for the grid index's "
+        "cells (float64 rounding, docs/memory.md 'Limits') are indexed apart by their norm and slow "
+        "only stores of keys of about the same norm. Leaves room for step counters in observations "
+        "(1e8 steps)",
         deviation="not in the thesis (inputs are unbounded there)", minimum=0.0, maximum=3e38)
     resend_window: int = param(
         1_000_000, "transitions of store answers the memory remembers by the client's request id (oldest "
