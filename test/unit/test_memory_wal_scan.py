@@ -13,6 +13,7 @@ from __future__ import annotations
 import glob
 import json
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -200,6 +201,27 @@ def test_a_log_cut_at_a_record_boundary_below_its_mark_is_refused(tmp_path):
         CompactMemory(cfg)
     mem = CompactMemory(MemoryConfig(storage_dir=str(tmp_path), snapshot_every=0, wal_accept_loss=True))
     assert mem.stats()["wal_sequence"] == 9 and all_back(mem, 12, missing=(9, 10, 11))
+
+
+def test_a_log_file_named_after_a_later_checkpoint_than_the_snapshot_is_refused(tmp_path):
+    """wal-<n>.log is opened at the checkpoint after sequence n - 1: an older snapshot put in place
+    of that checkpoint's (with no mark to tell) leaves sequences out."""
+    cfg, path = stored(tmp_path, n_ops=4, checkpoint_after=1)     # snapshot at 2
+    old = tmp_path / "older"
+    shutil.copytree(tmp_path / "snapshot", old)
+    mem = CompactMemory(cfg)
+    mem.checkpoint()                                              # snapshot at 4, wal-...5.log
+    mem.close()
+    shutil.rmtree(tmp_path / "snapshot")
+    os.rename(old, tmp_path / "snapshot")
+    os.remove(tmp_path / wal.MARK_FILE)
+    with pytest.raises(wal.WalMissingError, match=r"ends at sequence 2 .*checkpoint \(as its file name says\).*"
+                                                  r"2 acknowledged operations \(sequences 3-4\)"):
+        CompactMemory(cfg)
+    mem = CompactMemory(MemoryConfig(storage_dir=str(tmp_path), snapshot_every=0, wal_accept_loss=True))
+    assert mem.stats()["wal_sequence"] == 2 and all_back(mem, 4, missing=(2, 3))
+    del mem                                                      # killed: the accepted start checkpointed
+    assert CompactMemory(cfg).stats()["wal_sequence"] == 6      # and the 4 stores after it
 
 
 def test_a_killed_process_leaves_a_mark_its_log_always_reaches(tmp_path):

@@ -120,7 +120,7 @@ class Durability:
         files = self._wal_files()
         path = files[-1] if files else os.path.join(d, f"wal-{sequence() + 1:016d}.log")
         self._wal = st.WriteAheadLog(path, self.config.durability)
-        if accepted:   # the damaged log is replaced by a snapshot of what was replayed (and the mark)
+        if accepted:   # the damaged or short log is replaced by a snapshot of what was replayed (and the mark)
             self.checkpoint()
         else:
             self._write_mark("start")
@@ -166,8 +166,8 @@ class Durability:
         the last file (storage.scan_wal), and a log that ends before the sequence its mark
         records, stop start-up (files unchanged) unless ``wal_accept_loss``. Then the records are
         applied; with ``wal_accept_loss`` every intact record, before and after the damage, is
-        replayed, each damaged file is copied to ``<file>.damaged-<offset>``, and True is returned:
-        the caller then checkpoints, which replaces the damaged files. A torn tail is copied to
+        replayed, each damaged file is copied to ``<file>.damaged-<offset>``, and True is returned
+        (also for an accepted short log): the caller then checkpoints, which replaces the log files. A torn tail is copied to
         ``<file>.torn-<offset>`` and cut."""
         accept = self.config.wal_accept_loss
         start = self._sequence()
@@ -207,6 +207,11 @@ class Durability:
                 plan.append((seq, kind, arr))
                 cur = seq
             lost_before = lost_before or bool(scan.lost)
+        # a log file wal-<n>.log was opened when the log had reached n - 1: a mark too
+        named = max(files, key=lambda p: _first_sequence(p) or 0, default=None)
+        if named is not None and (_first_sequence(named) or 1) - 1 > max(cur, mark["sequence"] if mark else -1):
+            mark = {"file": os.path.basename(named), "sequence": _first_sequence(named) - 1,
+                    "bytes": 0, "when": "checkpoint (as its file name says)"}
         missing = None
         if mark is not None and mark["sequence"] > cur:
             missing = self._missing(mark, cur, start)
@@ -245,7 +250,7 @@ class Durability:
             dropped = f"{n} logged operation{'s' * (n != 1)}" + (f" (sequence{'s' * (n != 1)} {seqs})" if n else "")
             self._log(f"storage: wal_accept_loss: dropped {dropped}{tail}; replayed {len(plan)} records up to "
                       f"sequence {cur}.{caveat}")
-        return any(damaged)
+        return any(damaged) or missing is not None
 
     def _read_mark(self, accept: bool) -> dict | None:
         try:
