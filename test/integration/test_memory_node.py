@@ -75,7 +75,8 @@ def test_round_trip_two_phase_bad_inputs_snapshots_and_clean_stop(launch, client
     storage = tmp_path / "storage"
     proc, name = start(launch, "main", "-p", f"storage_dir:={storage}", "-p", "key_size:=26",
                        "-p", "max_store_batch:=256", "-p", "max_sample_batch:=128",
-                       "-p", "stats_period_s:=0.2", "-p", "snapshot_every:=0")
+                       "-p", "stats_period_s:=0.2", "-p", "snapshot_every:=0",
+                       "-p", "snapshot_service:=save_restore")   # restores through the service (off by default)
     memory = client_of(name)
     published = []
     memory.node.create_subscription(MemoryStats, f"/{name}/stats", published.append, STATS_QOS)

@@ -13,9 +13,10 @@ import threading
 from typing import Callable
 
 import rclpy
-from rclpy.signals import SignalHandlerOptions
+import rclpy.logging
 
 from comper_msgs_py.params import describe, spec_of
+from comper_msgs_py.ros_main import init_ros, security_problem
 
 __all__ = ["run_main", "help_text", "StopRequests"]
 
@@ -91,7 +92,8 @@ def run_main(node_cls: type, name: str, args=None) -> int:
     if "-h" in argv[1:] or "--help" in argv[1:]:
         print(help_text(node_cls))
         return 0
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    if not init_ros(args, name):      # discovery range, security: comper_msgs_py.ros_main
+        return 1
     logger = rclpy.logging.get_logger(name)
     node = None
 
@@ -111,7 +113,7 @@ def run_main(node_cls: type, name: str, args=None) -> int:
             if stops.stop.is_set():     # requested while the node was built (on_request saw no node)
                 node.stop_event.set()
         except Exception as exc:   # bad parameter, unknown task, missing nodes: one readable message
-            logger.error(f"cannot start: {exc}")
+            logger.error(f"cannot start: {security_problem(exc) or exc}")
             return 1
         rc = node.run()
     except KeyboardInterrupt:

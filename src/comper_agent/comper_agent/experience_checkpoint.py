@@ -6,7 +6,10 @@ resume (``checkpoint_replay``), so a run split over several sessions learns as o
   learner still holds for the memory has gone out (``quiesce``). Embedded bring-up: the embedded memory
   node's ``snapshot_root`` is the run's ``checkpoints/`` folder and the snapshot is ``step_<N>.memory``
   beside ``step_<N>.pt`` (pruned with it, :meth:`RunDir.save_checkpoint`); external: ``<run_id>/step_<N>.memory``
-  under the memory node's own ``snapshot_root``, on its machine.
+  under the memory node's own ``snapshot_root``, on its machine. On resume an embedded memory node restores
+  it in process (``MemoryNode.restore_snapshot``); an external one through ``~/snapshot``, which it allows
+  only when started with ``snapshot_service:=save_restore``, or when it loaded that snapshot at start-up
+  (``snapshot_restore``) and nothing changed since.
 * Learners with a local replay buffer (DQN, lock-step DDPG): ``step_<N>.replay.npz`` (the buffer's
   ``state_arrays``: numpy arrays only, read without unpickling).
 
@@ -99,9 +102,12 @@ class ExperienceCheckpoint:
                              "not restored; they refill from this step")
             return
         if saved["kind"] == "memory" and node.mem is not None:
-            try:
-                path, _ = node.mem.memory.restore(saved["request"], timeout=self.timeout)
-            except ServiceError as exc:
+            from comper_memory.core import SnapshotError
+            embedded = node.embedded.memory if node.embedded is not None else None
+            try:    # an embedded memory node restores in process: its ~/snapshot refuses peers' restores
+                path, _ = (embedded.restore_snapshot(saved["request"]) if embedded is not None
+                           else node.mem.memory.restore(saved["request"], timeout=self.timeout))
+            except (ServiceError, SnapshotError) as exc:
                 raise RuntimeError(f"cannot restore the memory saved with the checkpoint ({saved['path']}): {exc}; "
                                    "resume with -p checkpoint_replay:=false to continue with an empty memory") from None
             st = node.mem.stats()

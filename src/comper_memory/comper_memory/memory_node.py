@@ -22,12 +22,16 @@ Services (private, relative to the node, e.g. ``/memory_node/store``):
 Topic ``~/stats`` (comper_msgs/msg/MemoryStats), every ``stats_period_s``, best effort, keep last 1.
 Parameters: every field of :class:`comper_memory.core.MemoryConfig` (read-only, declared with
 ``declare_config``) plus the node-level ``key_size``, ``stats_period_s``, ``sample_seed``,
-``faiss_threads``, ``blas_threads``, ``executor_threads``, ``snapshot_root`` and ``snapshot_service``.
+``faiss_threads``, ``blas_threads``, ``executor_threads`` and the ``snapshot_*`` ones.
 
 ``~/snapshot`` paths are confined to ``snapshot_root`` (default ``<storage_dir>/snapshots``): a
 relative path is taken under it, an absolute one must resolve inside it, links and ``..`` cannot
-leave it, and the live storage can never be a target. ROS 2 services carry no caller identity;
-deployments where only some peers may call use SROS2 enclaves (docs/memory-service.md).
+leave it, and the live storage can never be a target. Names follow
+:mod:`comper_memory.snapshot_rules`, and named saves stay within its quota (``snapshot_max_count``,
+``snapshot_max_bytes``, ``snapshot_min_free_bytes``). ROS 2 services carry no caller identity, so by
+default peers may save but not restore (``snapshot_service`` save): a restore is done at start-up
+(``snapshot_restore``) or by the process that embeds the node (:meth:`MemoryNode.restore_snapshot`);
+deployments where only some peers may call use SROS2 enclaves (docs/security.md).
 
 A refused request answers ``success=false`` with the reason in ``message`` and changes nothing
 (the core validates a whole request before it touches any state); the node keeps serving.
@@ -68,6 +72,7 @@ from comper_msgs_py.qos import SERVICE_QOS
 from comper_msgs_py.ros_params import declare_config
 
 from .core import CompactMemory, MemoryConfig, MemoryInputError, RateLimited, SnapshotError
+from .snapshot_rules import NAME_MAX, NAME_RULE, SnapshotQuota, check_name, size_bound, usage
 
 __all__ = ["MemoryNode", "MemoryNodeConfig", "main", "STATS_QOS", "SERVICE_QOS", "SOURCES", "stats_to_msg"]
 
@@ -98,6 +103,13 @@ _STATS_TYPES = {k: v for k, v in MemoryStats.get_fields_and_field_types().items(
 
 class _Refused(Exception):
     """A request the node itself refuses before it reaches the core."""
+
+
+def _state_mark(memory: CompactMemory) -> tuple:
+    """What any state-changing call changes (stores, reductions, leases, restores, the log position)."""
+    s = memory.stats()
+    return tuple(s[k] for k in ("identities", "tm_sets", "rtm_size", "transitions_stored", "reductions",
+                                "sets_reduced", "evictions", "leases", "wal_sequence"))
 
 
 class _Yield:
@@ -148,10 +160,28 @@ class MemoryNodeConfig:
         "MultiThreadedExecutor), >= 2 = MultiThreadedExecutor with that many threads (requests taken from DDS at "
         "once). Ignored when the node is embedded in another process", minimum=1, maximum=64)
     snapshot_service: str = param(
-        "save_restore", "what ~/snapshot lets peers do: save_restore (default), save (OP_RESTORE, which replaces the "
-        "whole state, is refused) or disabled (both refused). ROS 2 services carry no caller identity: use SROS2 "
-        "security enclaves where only some peers may call (docs/memory-service.md)",
-        choices=("save_restore", "save", "disabled"))
+        "save", "what ~/snapshot lets peers do: save (default: OP_SAVE only; OP_RESTORE, which replaces the whole "
+        "state, is refused: restore at start-up with snapshot_restore), save_restore (any peer on the ROS domain "
+        "may also restore) or disabled (both refused). ROS 2 services carry no caller identity: use SROS2 "
+        "security enclaves where only some peers may call (docs/security.md)",
+        choices=("save", "save_restore", "disabled"))
+    snapshot_restore: str = param(
+        "", "a named snapshot (a name or path under snapshot_root, as in a ~/snapshot request) loaded at start-up, "
+        "after storage_dir is recovered, replacing that state (with storage_dir it is then checkpointed there); "
+        "'' = none. A missing or bad snapshot stops start-up. A ~/snapshot restore of this same snapshot while "
+        "nothing has changed since is answered without loading it again, whatever snapshot_service says")
+    snapshot_max_count: int = param(
+        64, "most named snapshots under snapshot_root (directories holding a snapshot, up to 4 levels down): a save "
+        "under a new name beyond it is refused (replacing an existing one is not). 0 = no limit",
+        minimum=0, maximum=2**31 - 1)
+    snapshot_max_bytes: int = param(
+        32 * 2**30, "most bytes all named snapshots under snapshot_root may take: a save that could take them "
+        "beyond it (its size bounded from the memory's arrays before anything is written) is refused. "
+        "0 = no limit", minimum=0, maximum=2**62)
+    snapshot_min_free_bytes: int = param(
+        2**30, "free bytes a named snapshot save must leave on snapshot_root's file system (the storage_dir's "
+        "write-ahead log may share it): a save that could leave less is refused. 0 = no check",
+        minimum=0, maximum=2**62)
     snapshot_root: str = param(
         "", "the only directory ~/snapshot may write or read named snapshots in (a relative request path is taken "
         "under it; an absolute one must lie inside it after resolving links). '' = <storage_dir>/snapshots, or no "
@@ -183,9 +213,17 @@ class MemoryNode(Node):
             if self.blas_threads > 0 and set_numpy_blas_threads(self.blas_threads) is None:
                 self.get_logger().warning("blas_threads: numpy's BLAS is not OpenBLAS; its threads are unchanged")
             self._snapshot_root = self._check_snapshot_root()
+            self.snapshot_quota = SnapshotQuota(p.snapshot_max_count, p.snapshot_max_bytes,
+                                                p.snapshot_min_free_bytes)
             self.memory = CompactMemory(self.config, self.key_size or None,
                                         log=lambda text: self.get_logger().warning(text))
+            # (path, state fingerprint) of the snapshot_restore loaded at start-up
+            self._restored_at_start: tuple[str, tuple] | None = None
+            if p.snapshot_restore:
+                self._restore_at_start(p.snapshot_restore)
         except Exception:
+            if getattr(self, "memory", None) is not None:
+                self.memory.close()
             super().destroy_node()
             raise
         self._rng = np.random.default_rng(None if self.sample_seed < 0 else self.sample_seed)
@@ -418,6 +456,8 @@ class MemoryNode(Node):
                            "storage) is served")
         if "\0" in path:
             raise _Refused("snapshot: path holds a NUL character")
+        if len(path) > len(root) + 1 + NAME_MAX:     # before any file-system call (a name too long for it)
+            raise _Refused(f"snapshot: a path of {len(path)} characters is refused ({NAME_RULE})")
         full = os.path.normpath(path if os.path.isabs(path) else os.path.join(root, path))
         if os.path.islink(full):
             raise _Refused(f"snapshot: path {path!r} is a symbolic link; refused")
@@ -425,28 +465,84 @@ class MemoryNode(Node):
         if full == root or os.path.commonpath([full, root]) != root:
             raise _Refused(f"snapshot: path {path!r} is outside snapshot_root {root!r}; give a name "
                            "(relative paths are taken under snapshot_root) or an absolute path inside it")
+        check_name(os.path.relpath(full, root))
         return full
 
-    def _snapshot(self, request: Snapshot.Request) -> tuple[str, str]:
-        if self.snapshot_service == "disabled":
+    def _restore_at_start(self, name: str) -> None:
+        """snapshot_restore: load the named snapshot before serving; ConfigError (cannot start) if it fails."""
+        try:
+            path = self._named_snapshot_path(name)
+            if not os.path.isdir(path):
+                raise _Refused(f"{path!r} is not a snapshot directory")
+            self.memory.load_snapshot(path)
+        except (_Refused, SnapshotError, MemoryInputError) as exc:
+            raise ConfigError(f"snapshot_restore {name!r}: {exc}; start without snapshot_restore to keep the "
+                              "state the node recovers by itself") from None
+        self._restored_at_start = (path, _state_mark(self.memory))
+        s = self.memory.stats()
+        self.get_logger().info(f"restored at start-up from {path} (snapshot_restore): {s['identities']} "
+                               f"identities, TM sets {s['tm_sets']}, RTM {s['rtm_size']}")
+
+    def _restore_refused(self, request: Snapshot.Request) -> tuple[str, str]:
+        """A peer's restore while snapshot_service is not save_restore: refused, unless it asks for the
+        snapshot_restore loaded at start-up and nothing has changed since (then it changes nothing)."""
+        path = None
+        with contextlib.suppress(_Refused, SnapshotError):      # a name outside the rules is not echoed
+            path = self._named_snapshot_path(request.path) if request.path else None
+        if self._restored_at_start is not None and path is not None:
+            start_path, mark = self._restored_at_start
+            if path == start_path and _state_mark(self.memory) == mark:
+                return start_path, "already restored at start-up (nothing changed since):"
+        what = repr(request.path) if path else "a named snapshot" if request.path else "the storage snapshot"
+        hint = (f"restart the node with -p snapshot_restore:={request.path if path else 'NAME'} to restore it at "
+                "start-up, or " if request.path else "")
+        raise _Refused(f"snapshot: restore is off on this node (snapshot_service {self.snapshot_service}): peers "
+                       f"may not replace the memory's state. To restore {what}, {hint}allow restores through the "
+                       "service with -p snapshot_service:=save_restore (any peer on the ROS domain may then "
+                       "restore; docs/security.md)")
+
+    def _snapshot(self, request: Snapshot.Request, *, peer: bool = True) -> tuple[str, str]:
+        """peer=False: a call of the process that embeds this node (restore_snapshot), which
+        snapshot_service does not gate."""
+        if peer and self.snapshot_service == "disabled":
             raise _Refused("snapshot: this node's snapshot service is off (snapshot_service disabled)")
         if request.op == Snapshot.Request.OP_SAVE:
             if request.path:
-                path = self._named_snapshot_path(request.path)
-                self.memory.save_snapshot(path)
+                path, root = self._named_snapshot_path(request.path), self._snapshot_root
+                # within the quota, checked against a bound of its size before anything is written (the
+                # snapshot it replaces does not count)
+                count, used = usage(root, exclude=path)
+                self.memory.save_snapshot(path, admit=lambda arrays, meta: self.snapshot_quota.check(
+                    root, path, count, used, size_bound(arrays, meta)))
             else:  # snapshot into storage_dir and rotate the WAL
                 path = self._default_snapshot_path()
                 self.memory.checkpoint()
             return path, "saved"
         if request.op == Snapshot.Request.OP_RESTORE:
-            if self.snapshot_service != "save_restore":
-                raise _Refused("snapshot: restore is off on this node (snapshot_service save)")
+            if peer and self.snapshot_service != "save_restore":
+                return self._restore_refused(request)
             path = self._named_snapshot_path(request.path) if request.path else self._default_snapshot_path()
             if not os.path.isdir(path):
                 raise _Refused(f"snapshot: {path!r} is not a snapshot directory")
             self.memory.load_snapshot(path)
             return path, "restored"
         raise _Refused(f"snapshot: unknown op {request.op} (OP_SAVE=0, OP_RESTORE=1)")
+
+    def restore_snapshot(self, path: str) -> tuple[str, int]:
+        """OP_RESTORE for the process that embeds this node (a learner resuming its run), with the checks of
+        a ~/snapshot restore (path confined to snapshot_root, the snapshot verified whole) whatever
+        snapshot_service says: that parameter gates peers. (path, wal_sequence); SnapshotError with the
+        reason when refused (nothing changed)."""
+        request = Snapshot.Request(op=Snapshot.Request.OP_RESTORE, path=path)
+        with self._snapshot_lock:
+            try:
+                with self._open():
+                    path, what = self._snapshot(request, peer=False)
+            except (_Refused,) + _REFUSED as exc:
+                raise SnapshotError(str(exc)) from None
+        seq = int(self._stats()["wal_sequence"])
+        self.get_logger().info(f"snapshot {what} (in process): {path} (wal_sequence {seq})")
+        return path, seq
 
     #: how many snapshot answers the node remembers by request id (Snapshot.srv)
     SNAPSHOT_ANSWERS = 64

@@ -320,10 +320,13 @@ class CompactMemory:
         with self._lock:
             return state_arrays(self)
 
-    def save_snapshot(self, path: str) -> None:
-        """Write the whole state to the snapshot directory ``path`` (atomic, checksummed)."""
+    def save_snapshot(self, path: str, admit=None) -> None:
+        """Write the whole state to the snapshot directory ``path`` (atomic, checksummed). ``admit(arrays,
+        meta)``, if given, sees what will be written before anything is; what it raises refuses the save."""
         with self._lock:
             arrays, meta = state_arrays(self)
+            if admit is not None:
+                admit(arrays, meta)
             st.write_snapshot(path, arrays, meta)
 
     def load_snapshot(self, path: str) -> None:
