@@ -164,5 +164,10 @@ $AMENT_ENV
 . "$ROOT/install/local_setup.bash"
 # test and benchmark extras (requirements-extras.lock), after the workspace's own packages
 export PYTHONPATH="\${PYTHONPATH:+\$PYTHONPATH:}$EXTRAS"
+# DDS discovery stays on this host unless a range was chosen before sourcing (the nodes' entry points do the
+# same): several hosts need ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET (docs/security.md)
+if [ -z "\${ROS_AUTOMATIC_DISCOVERY_RANGE:-}" ] && [ -z "\${ROS_LOCALHOST_ONLY:-}" ]; then
+  export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+fi
 ENV
 say "ready: source $ROOT/env.sh"
