@@ -4,7 +4,8 @@
 The actor ends in tanh. Where the output layer's value x is large (|x| > 2.65: within 1 % of the action
 bound), tanh's slope is below 0.02, and at |x| ~ 20 it is 0 in float32: the critic's gradient no longer
 reaches the actor, whatever the critic learns. A run whose actor saturates in every output for every state
-holds one fixed action sequence for good (docs/comcact.md, "The actor's saturation").
+holds one fixed action sequence for good (docs/studies/comcact-actor-saturation.md). The actor penalty that study
+measured (actor_preact_l2) is no longer in the learner: check out the study's commit to rerun it.
 
 For each run folder it rebuilds the actor from config.yaml and latest.pt (no ROS) and evaluates it on up to
 --states states of the run's own replay at that checkpoint (the DDPG buffer's file, or COMCACT's memory
@@ -16,12 +17,12 @@ snapshot), then prints per run:
                   (0: the same action in every state)
 
 With --actor-steps N it then takes N actor steps alone (the learner's own actor step and Adam state, the
-critic held as it is, batches of the run's batch size drawn from those states) with actor_preact_l2 set to
---preact-l2 (default: the run's own), and prints the same figures after them, with the critic's mean value of
+critic held as it is, batches of the run's batch size drawn from those states) and prints the same figures
+after them, with the critic's mean value of
 the actor's actions before and after (q_before, q_after): whether the actor's gradient can still move it.
 
     python benchmarks/actor_saturation.py runs/ddpg-Hopper-v4-s0 runs/comcact-Hopper-v4-s0 --json sat.json
-    python benchmarks/actor_saturation.py runs/comcact-Hopper-v4-s1 --actor-steps 500 --preact-l2 0.001
+    python benchmarks/actor_saturation.py runs/comcact-Hopper-v4-s1 --actor-steps 500
 """
 from __future__ import annotations
 
@@ -53,7 +54,7 @@ def figures(learner, states) -> dict:
             "q": float(q.mean())}
 
 
-def saturation(run: Path, max_states: int, seed: int, actor_steps: int = 0, preact_l2: float | None = None) -> dict:
+def saturation(run: Path, max_states: int, seed: int, actor_steps: int = 0) -> dict:
     import torch
     from comper_agent.core.comcact import ComcactLearner
     from comper_agent.core.config import ComcactConfig
@@ -61,8 +62,8 @@ def saturation(run: Path, max_states: int, seed: int, actor_steps: int = 0, prea
 
     cfg, ckpt, state = last_checkpoint(run, ("ddpg", "comcact"), "has no actor")
     env = cfg["env"]
-    learner_cfg = dict(cfg["learner"], **({} if preact_l2 is None else {"actor_preact_l2": preact_l2}))
-    learner = ComcactLearner(config_from_dict(ComcactConfig, learner_cfg),
+    # runs of earlier versions may name parameters the learner no longer has (the studies' ablations)
+    learner = ComcactLearner(config_from_dict(ComcactConfig, cfg["learner"], ignore_unknown=True),
                              int(np.prod(env["observation_shape"])), env["action_low"], env["action_high"])
     learner.load_state_dict(state["learner"])
     states = replay_states(ckpt, state)
@@ -77,8 +78,7 @@ def saturation(run: Path, max_states: int, seed: int, actor_steps: int = 0, prea
         for _ in range(actor_steps):
             learner.actor_step(states[rng.integers(0, len(states), learner.config.batch_size)])
         after = figures(learner, states)
-        row.update({"actor_steps": actor_steps, "preact_l2": learner.config.actor_preact_l2,
-                    "q_before": before["q"], "q_after": after["q"],
+        row.update({"actor_steps": actor_steps, "q_before": before["q"], "q_after": after["q"],
                     **{f"after_{k}": v for k, v in after.items() if k != "q"}})
     return row
 
@@ -88,7 +88,7 @@ def line(r: dict) -> str:
             f"all_saturated {r['all_saturated']:.3f}, mean_abs_x {r['mean_abs_x']:.1f}, "
             f"action_spread {r['action_spread']:.3f}")
     if "actor_steps" in r:
-        text += (f"; after {r['actor_steps']} actor steps with actor_preact_l2 {r['preact_l2']:g}: saturation "
+        text += (f"; after {r['actor_steps']} actor steps: saturation "
                  f"{r['after_saturation']:.3f}, all_saturated {r['after_all_saturated']:.3f}, mean_abs_x "
                  f"{r['after_mean_abs_x']:.1f}, action_spread {r['after_action_spread']:.3f}, critic's Q of the "
                  f"actions {r['q_before']:.2f} -> {r['q_after']:.2f}")
@@ -100,11 +100,9 @@ def main(argv=None) -> int:
     ap.add_argument("--states", type=int, default=20000, help="states drawn from the replay (default %(default)s)")
     ap.add_argument("--actor-steps", type=int, default=0,
                     help="then take this many actor steps alone and measure again (default %(default)s: none)")
-    ap.add_argument("--preact-l2", type=float, default=None,
-                    help="actor_preact_l2 for those steps (default: the run's own)")
     args = ap.parse_args(argv)
-    return rows_per_run(args.runs, lambda run: saturation(run, args.states, args.seed, args.actor_steps,
-                                                          args.preact_l2), line, args.json)
+    return rows_per_run(args.runs, lambda run: saturation(run, args.states, args.seed, args.actor_steps), line,
+                        args.json)
 
 
 if __name__ == "__main__":

@@ -58,7 +58,6 @@ def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
     ap.add_argument("--algorithms", nargs="+", default=["ddpg", "comcact"], choices=["ddpg", "comcact"])
-    ap.add_argument("--critic", default="single", choices=["single", "twin"])
     ap.add_argument("--qt-step-gate", action="store_true",
                     help="COMCACT's qt_step_gate on (its check reuses the update's DDPG targets, except in toggle)")
     ap.add_argument("--variants", nargs="+", default=["toggle", "off", "default"],
@@ -94,7 +93,7 @@ def toggle_update(lrn: ComcactLearner, batch: Transitions) -> None:
     s, a, *_ = lrn._tensors(batch)
     y = lrn.td_targets(batch)
     lrn.critic.train()
-    loss = sum(torch.mean((qi - y) ** 2) for qi in lrn.critic.all_heads(s, a))
+    loss = torch.mean((lrn.critic(s, a) - y) ** 2)
     lrn.critic_opt.zero_grad(set_to_none=True)
     loss.backward()
     lrn.critic_opt.step()
@@ -165,7 +164,7 @@ def max_diff(a: ComcactLearner, b: ComcactLearner, atol: float, rtol: float) -> 
 
 def run_case(task: str, algorithm: str, args) -> list[dict]:
     obs, act = TASKS[task]
-    cfg = config_from_dict(ComcactConfig, {"variant": algorithm, "critic": args.critic, "seed": 0,
+    cfg = config_from_dict(ComcactConfig, {"variant": algorithm, "seed": 0,
                                            "batch_size": args.batch, "qt_step_gate": args.qt_step_gate})
     base = ComcactLearner(cfg, obs, -np.ones(act, np.float32), np.ones(act, np.float32))
     data = batches(obs, act, 16, args.batch)
@@ -206,7 +205,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
     warnings.simplefilter("always", RuntimeWarning)
-    print(f"[bench] torch {torch.__version__}, {args.threads} thread(s), batch {args.batch}, critic {args.critic}, "
+    print(f"[bench] torch {torch.__version__}, {args.threads} thread(s), batch {args.batch}, "
           f"qt_step_gate {args.qt_step_gate}, "
           f"{args.updates} timed updates after {args.warmup} warm-up, equality after {args.check_updates} updates "
           f"(torch.allclose atol {args.atol:g} rtol {args.rtol:g}), reference {args.reference}; "

@@ -2,8 +2,8 @@
 embedded bring-up on InvertedPendulum-v4 (evaluations and episodes published, run directory
 written, Ctrl-C saves a final checkpoint); external bring-up with sim_node, memory_node and
 qt_trainer_node started by ros2 run (with profile fresh_labels_gate: its values reach node and learner,
-and with restore_batch the re-stored batches join their sets in the memory node); the ddpg variant with a checkpoint round trip and resume (the replay buffer's contents saved and restored);
-qt_step_mode joint (one critic step per update)."""
+and with restore_batch the re-stored batches join their sets in the memory node); the ddpg variant with a checkpoint round trip and resume (the replay buffer's contents saved and
+restored)."""
 import json
 import math
 import os
@@ -291,17 +291,3 @@ def test_reduce_overlap_reduces_while_learning(launch, tmp_path):
     assert collected >= 30 and state["counters"]["reductions"] == collected + 1
     assert state["qt_trainer"]["qt"]["version"] >= collected
     assert state["learner"]["qt_steps"] > 0
-
-
-def test_joint_qt_step_mode_takes_the_qt_loss_inside_the_ddpg_step(launch, tmp_path):
-    """qt_step_mode:=joint through the node and the real memory and QT trainer: QT steps are taken, and the
-    critic's Adam state counts one step per update (separate mode: one more per QT step)."""
-    proc = launch("comper_agent", "comcact_node",
-                  *_args(tmp_path, "joint", "-p", "total_steps:=300", "-p", "eval_every:=0", "-p", "reduce_every:=5",
-                         "-p", "qt_step_mode:=joint"), name="joint")
-    assert _wait(proc, 240) == 0, proc.log()[-4000:]
-    cfg = yaml.safe_load((tmp_path / "joint" / "config.yaml").read_text())
-    assert cfg["learner"]["qt_step_mode"] == "joint"
-    learner = torch.load(tmp_path / "joint" / "checkpoints" / "latest.pt", weights_only=True)["state"]["learner"]
-    assert 0 < learner["qt_steps"] < learner["updates"]      # no QT targets before QT's first version
-    assert int(learner["critic_opt"]["state"][0]["step"]) == learner["updates"]

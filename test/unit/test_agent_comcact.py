@@ -194,28 +194,9 @@ def test_qt_diagnostics_measure_the_qt_target_against_the_ddpg_target():
     assert all(torch.equal(before[k], v) for k, v in lrn.critic.state_dict().items())
 
 
-def test_twin_critic_bootstraps_from_the_minimum_and_trains_both_heads():
-    lrn = learner(DDPGConfig, critic="twin")
-    b = batch()
-    s2 = torch.as_tensor(b.next_states)
-    with torch.no_grad():
-        a2 = lrn.actor_target(s2)
-        q1, q2 = lrn.critic_target.q1(s2, a2).numpy(), lrn.critic_target.q2(s2, a2).numpy()
-    assert not np.allclose(q1, q2)                                  # two independent initialisations
-    np.testing.assert_allclose(lrn.td_targets(b).numpy(), b.rewards + 0.99 * np.minimum(q1, q2), rtol=1e-5,
-                               atol=1e-6)
-    before = copy.deepcopy(lrn.critic.state_dict())
-    lrn.update(b)
-    after = lrn.critic.state_dict()
-    for head in ("q1", "q2"):                                       # both heads take the critic step
-        assert not torch.equal(before[f"{head}.fc1.weight"], after[f"{head}.fc1.weight"])
-    single = learner(DDPGConfig)
-    assert set(single.critic.state_dict()) == {k.split(".", 1)[1] for k in before if k.startswith("q1.")}
-
-
-def _qt_step_change(weight, gate=False, shift=0.0):
+def _qt_step_change(gate=False, shift=0.0):
     """Parameter change of one QT step after one shared DDPG step (the Adam state both steps share)."""
-    lrn = learner(qt_step_weight=weight, qt_step_gate=gate)
+    lrn = learner(qt_step_gate=gate)
     b = batch(seed=3)
     lrn.update(b)
     s2 = torch.as_tensor(b.next_states)
@@ -227,17 +208,10 @@ def _qt_step_change(weight, gate=False, shift=0.0):
     return float((after - before).norm()), out, lrn
 
 
-def test_qt_step_weight_makes_the_qt_step_smaller():
-    full, _, _ = _qt_step_change(1.0, shift=5.0)
-    quarter, _, _ = _qt_step_change(0.25, shift=5.0)
-    none, out, lrn = _qt_step_change(0.0, shift=5.0)
-    assert 0.0 < quarter < full and none == 0.0 and lrn.qt_steps == 0 and "qt_critic_loss" not in out
-
-
 def test_qt_step_gate_skips_a_qt_target_worse_than_the_critic_s_own():
-    close, out, _ = _qt_step_change(1.0, gate=True, shift=0.0)      # QT = the DDPG target: the step is taken
+    close, out, _ = _qt_step_change(gate=True, shift=0.0)      # QT = the DDPG target: the step is taken
     assert close > 0.0 and out["qt_gated"] == 0.0
-    far, out, lrn = _qt_step_change(1.0, gate=True, shift=100.0)    # far off: skipped, nothing moves
+    far, out, lrn = _qt_step_change(gate=True, shift=100.0)    # far off: skipped, nothing moves
     assert far == 0.0 and out["qt_gated"] == 1.0 and lrn.qt_gated == 1 and lrn.qt_steps == 0
 
 
@@ -259,28 +233,6 @@ def test_qt_step_gate_decides_on_qt_diagnostics_figures():
     assert seen == {0.0, 1.0}
 
 
-@pytest.mark.parametrize("mode", ["separate", "joint"])
-def test_qt_step_target_ddpg_target_is_a_qt_without_error(mode):
-    """qt_step_target ddpg_target: whatever QT says, the QT step moves the critic exactly as the thesis's step
-    does when QT(tau) = Q'(s', mu'(s')) (0 where terminated); the gate never drops it."""
-    term = np.zeros(32, bool)
-    term[:5] = True
-    b = batch(32, seed=7, terminated=term)
-    nets = {}
-    for target, shift in (("qt", 0.0), ("ddpg_target", 100.0)):
-        lrn = learner(qt_step_target=target, qt_step_gate=True, qt_step_mode=mode)
-        lrn.update(batch(seed=8))
-        lrn.soft_update()
-        s2 = torch.as_tensor(b.next_states)
-        with torch.no_grad():
-            exact = lrn.critic_target(s2, lrn.actor_target(s2)).numpy() * ~term
-        out = lrn.update(b, exact + shift) if mode == "joint" else lrn.qt_critic_step(b, exact + shift)
-        assert out["qt_gated"] == 0.0 and lrn.qt_steps == 1
-        nets[target] = lrn.critic.state_dict()
-    for k, v in nets["qt"].items():
-        torch.testing.assert_close(nets["ddpg_target"][k], v)
-
-
 def test_label_critic_target_labels_with_the_target_networks():
     """label_critic target: the label is Q'(s', mu'(s')) (0 when terminated), the DDPG target's own
     bootstrap; online (the thesis): Q(s', mu(s')). They differ once an update has moved the online nets."""
@@ -297,50 +249,6 @@ def test_label_critic_target_labels_with_the_target_networks():
     np.testing.assert_allclose(target.value_labels(b), (target.td_targets(b).numpy() - b.rewards) / 0.99, atol=1e-4)
     assert np.all(target.value_labels(b)[:4] == 0.0)
     assert np.abs(online.value_labels(b) - target.value_labels(b))[4:].max() > 1e-4
-
-
-def test_actor_preact_l2_adds_its_penalty_to_the_actor_loss_and_gradient():
-    """The actor's loss with actor_preact_l2 = lam is -mean Q(s, mu(s)) + lam mean x^2 (x: the output layer's
-    value before tanh); on the output bias its gradient differs from lam = 0's by 2 lam / (B D) sum_i x_i."""
-    lam, b = 0.05, batch(seed=5)
-    s = torch.as_tensor(b.states)
-    grads, losses = {}, {}
-    for weight in (0.0, lam):
-        lrn = learner(actor_preact_l2=weight)
-        params = {k: p.detach() for k, p in lrn.critic.named_parameters()}
-        loss, saturated = lrn._actor_loss(s, params)
-        loss.backward()
-        grads[weight], losses[weight] = lrn.actor.out.bias.grad.clone(), loss.item()
-        with torch.no_grad():
-            pre = lrn.actor.out(lrn.actor.body(s))
-            q = lrn.critic(s, lrn.actor.action_center + lrn.actor.action_half_range * torch.tanh(pre))
-        assert float(saturated) == pytest.approx(float(torch.mean((pre.abs() > 2.65).float())))
-    assert losses[0.0] == pytest.approx(float(-q.mean()), rel=1e-5)
-    assert losses[lam] == pytest.approx(float(-q.mean() + lam * torch.mean(pre ** 2)), rel=1e-5)
-    expected = 2 * lam / pre.numel() * pre.sum(0)
-    torch.testing.assert_close(grads[lam] - grads[0.0], expected, rtol=1e-4, atol=1e-8)
-
-
-def test_actor_preact_l2_brings_a_saturated_actor_back_where_the_critic_reaches_it():
-    """An actor whose every output sits on tanh's flat end gets no gradient from the critic: without the
-    penalty updates leave it where it is; with it the outputs come back off the bounds."""
-    b = batch(seed=6)
-    s = torch.as_tensor(b.states)
-    result = {}
-    for weight in (0.0, 1e-3):
-        lrn = learner(actor_preact_l2=weight)
-        with torch.no_grad():
-            lrn.actor.out.bias.fill_(40.0)
-        before = lrn.actor.out.bias.detach().clone()
-        first = lrn.update(b)
-        for _ in range(200):
-            lrn.update(b)
-        with torch.no_grad():
-            result[weight] = (first["actor_saturation"], float(lrn.actor.pre_activation(s).abs().mean()),
-                              float((lrn.actor.out.bias - before).abs().max()))
-    assert result[0.0][0] == 1.0 and result[1e-3][0] == 1.0
-    assert result[0.0][2] == 0.0                 # no gradient reaches a saturated actor
-    assert result[1e-3][1] < 0.5 * result[0.0][1]
 
 
 def test_actor_step_moves_the_actor_alone():

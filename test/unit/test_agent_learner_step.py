@@ -38,7 +38,7 @@ def batches(n=3, size=32):
 
 
 def learner(**kw):
-    kw = {"actor_hidden": [32, 24], "critic_hidden": [32, 24], "qt_step_weight": 0.5, **kw}
+    kw = {"actor_hidden": [32, 24], "critic_hidden": [32, 24], **kw}
     return ComcactLearner(config_from_dict(ComcactConfig, kw), OBS, LOW, HIGH)
 
 
@@ -62,40 +62,25 @@ class Reference:
         opt.step()
         opt.zero_grad()
 
-    def _heads(self, s, a):
-        return (self.critic.q1(s, a), self.critic.q2(s, a)) if self.c.critic == "twin" else (self.critic(s, a),)
-
-    def _critic_loss(self, s, a, y):
-        return sum(((q - y) ** 2).mean() for q in self._heads(s, a))
-
-    def _critic_step(self, s, a, y, weight=1.0, y_qt=None):
-        """weight x the loss against y; with y_qt (qt_step_mode joint) the loss against y + qt_step_weight x
-        the loss against y_qt, in the one step."""
+    def _critic_step(self, s, a, y):
         self.critic.train()
-        loss = self._critic_loss(s, a, y) * weight
-        if y_qt is not None:
-            loss = loss + self.c.qt_step_weight * self._critic_loss(s, a, y_qt)
-        self._apply(loss, self.critic, self.critic_opt)
+        self._apply(((self.critic(s, a) - y) ** 2).mean(), self.critic, self.critic_opt)
         self.critic.eval()
 
     def step(self, b: Transitions, qt: np.ndarray) -> None:
         s, a, r, s2 = (torch.tensor(x) for x in (b.states, b.actions, b.rewards, b.next_states))
         live = torch.tensor(~b.terminated, dtype=torch.float32)
         with torch.no_grad():
-            a2 = self.actor_target(s2)
-            q2 = self.critic_target(s2, a2) if self.c.critic == "single" else torch.minimum(
-                self.critic_target.q1(s2, a2), self.critic_target.q2(s2, a2))
-            y = r + self.c.gamma * live * q2
+            y = r + self.c.gamma * live * self.critic_target(s2, self.actor_target(s2))
         y_qt = r + self.c.gamma * live * torch.tensor(qt)
-        joint = self.c.variant == "comcact" and self.c.qt_step_mode == "joint"
-        self._critic_step(s, a, y, y_qt=y_qt if joint else None)
+        self._critic_step(s, a, y)
         self.actor.train()
         self.critic.train()
         self._apply(-self.critic(s, self.actor(s)).mean(), self.actor, self.actor_opt)
         self.actor.eval()
         self.critic.eval()
-        if self.c.variant == "comcact" and not joint:
-            self._critic_step(s, a, y_qt, self.c.qt_step_weight)
+        if self.c.variant == "comcact":
+            self._critic_step(s, a, y_qt)
         with torch.no_grad():
             for tgt, src in ((self.actor_target, self.actor), (self.critic_target, self.critic)):
                 for t, p in zip(tgt.state_dict().values(), src.state_dict().values()):
@@ -105,10 +90,9 @@ class Reference:
 def run(lrn: ComcactLearner, data) -> None:
     """The updates as comcact_node drives them (QT targets given, here fixed per batch)."""
     comcact = lrn.config.variant == "comcact"
-    joint = comcact and lrn.config.qt_step_mode == "joint"
     for b, qt in data:
-        lrn.update(b, qt if joint else None)
-        if comcact and not joint:
+        lrn.update(b)
+        if comcact:
             lrn.qt_critic_step(b, qt)
         lrn.soft_update()
 
@@ -120,11 +104,10 @@ def assert_same(lrn, other, atol=1e-6, rtol=1e-5):
 
 
 @pytest.mark.parametrize("variant", ["ddpg", "comcact"])
-@pytest.mark.parametrize("critic", ["single", "twin"])
 @pytest.mark.parametrize("batch_norm,grad_clip,action_input", [(False, 0.0, "second_hidden"),
                                                                (True, 0.0, "second_hidden"), (False, 0.05, "output")])
-def test_eager_step_equals_the_reference_parameter_by_parameter(variant, critic, batch_norm, grad_clip, action_input):
-    lrn = learner(variant=variant, critic=critic, batch_norm=batch_norm, grad_clip=grad_clip,
+def test_eager_step_equals_the_reference_parameter_by_parameter(variant, batch_norm, grad_clip, action_input):
+    lrn = learner(variant=variant, batch_norm=batch_norm, grad_clip=grad_clip,
                   critic_action_input=action_input)
     ref = Reference(lrn)
     data = batches()
@@ -138,57 +121,14 @@ def test_eager_step_equals_the_reference_parameter_by_parameter(variant, critic,
     assert lrn.compile_report() == {}
 
 
-@pytest.mark.parametrize("critic", ["single", "twin"])
-@pytest.mark.parametrize("weight", [0.5, 1.0])
-def test_joint_qt_step_is_one_critic_step_on_both_losses_equal_to_the_reference(critic, weight):
-    """qt_step_mode joint: one Adam step of the critic on the DDPG loss + qt_step_weight x the QT loss, then
-    the actor step; it differs from the thesis's two critic steps on the same data."""
-    lrn = learner(critic=critic, qt_step_mode="joint", qt_step_weight=weight)
-    separate = learner(critic=critic, qt_step_weight=weight)
-    ref = Reference(lrn)
-    data = batches()
-    run(lrn, data)
-    run(separate, data)
-    for b, qt in data:
-        ref.step(b, qt)
-    assert lrn.updates == 3 and lrn.qt_steps == 3
-    assert_same(lrn, ref)
-    assert int(lrn.critic_opt.state_dict()["state"][0]["step"]) == 3      # one Adam step per update
-    assert int(separate.critic_opt.state_dict()["state"][0]["step"]) == 6
-    with pytest.raises(AssertionError):
-        assert_same(lrn, separate)
-
-
-def test_the_qt_targets_go_where_the_mode_takes_them():
+def test_a_qt_target_count_that_does_not_match_the_batch_is_refused_before_any_step():
     (b, qt), = batches(1)
-    with pytest.raises(RuntimeError, match="joint only"):
-        learner().update(b, qt)
-    joint = learner(qt_step_mode="joint")
-    with pytest.raises(RuntimeError, match="no separate QT step"):
-        joint.qt_critic_step(b, qt)
+    lrn = learner()
     with pytest.raises(ValueError, match="3 QT targets for 32 transitions"):
-        joint.update(b, qt[:3])
-    assert joint.updates == 0 and joint.qt_steps == 0                     # refused before any step
+        lrn.qt_critic_step(b, qt[:3])
+    assert lrn.qt_steps == 0
     with pytest.raises(RuntimeError, match="ddpg variant"):
-        learner(variant="ddpg", qt_step_mode="joint").update(b, qt)
-
-
-def test_joint_mode_gate_drops_the_qt_term_and_leaves_the_ddpg_step():
-    """qt_step_gate with joint: a batch whose QT target is far from the DDPG target takes the DDPG update
-    alone (the same parameters as a DDPG learner's), one close to it takes the joint step."""
-    (b, _), = batches(1)
-    gated, ddpg = learner(qt_step_mode="joint", qt_step_gate=True), learner(variant="ddpg")
-    y = gated.td_targets(b).numpy()
-    live = ~b.terminated
-    far = np.where(live, (y - b.rewards) / 0.99 + 100.0, 0.0).astype(np.float32)
-    out = gated.update(b, far)
-    ddpg.update(b)
-    assert out["qt_gated"] == 1.0 and "qt_critic_loss" not in out and gated.qt_gated == 1 and gated.qt_steps == 0
-    assert_same(gated, ddpg, atol=0.0, rtol=0.0)
-    taken = learner(qt_step_mode="joint", qt_step_gate=True)
-    close = np.where(live, (y - b.rewards) / 0.99, 0.0).astype(np.float32)   # QT = the DDPG bootstrap
-    out = taken.update(b, close)
-    assert out["qt_gated"] == 0.0 and taken.qt_steps == 1 and out["qt_critic_loss"] > 0.0
+        learner(variant="ddpg").qt_critic_step(b, qt)
 
 
 def test_qt_diagnostics_after_an_update_reuse_its_ddpg_targets_with_the_same_result():
@@ -216,9 +156,9 @@ def test_bad_compile_mode_is_refused_and_the_config_offers_exactly_the_modes():
 
 def test_without_a_cpp_compiler_the_step_runs_eagerly_with_one_warning(monkeypatch):
     monkeypatch.setattr(networks, "cpp_compiler", lambda: None)
-    eager = learner(critic="twin")
+    eager = learner()
     with pytest.warns(RuntimeWarning, match="no C.. compiler found"):
-        lrn = learner(critic="twin", learner_compile="default")
+        lrn = learner(learner_compile="default")
     data = batches()
     run(eager, data)
     with warnings.catch_warnings():
@@ -250,7 +190,7 @@ def test_a_compile_failure_on_the_first_call_falls_back_to_eager(monkeypatch):
 @pytest.mark.slow
 @pytest.mark.skipif(networks.cpp_compiler() is None, reason="torch.compile needs a C++ compiler on CPU")
 def test_compiled_step_equals_the_reference():
-    lrn = learner(critic="twin", learner_compile="default")
+    lrn = learner(learner_compile="default")
     ref = Reference(lrn)
     data = batches()
     run(lrn, data)

@@ -386,24 +386,20 @@ class ComcactNode(AgentNode):
             if got is None:
                 return
             batch, counts = got
-            # qt_step_mode joint: QT's targets from the model before this update's reduction, in the one critic step
-            joint = self.comcact and self.cfg.qt_step_mode == "joint"
-            targets = self._qt_targets(batch) if joint else None
             with self.ptimers("learner"):
-                self.last_update = self.learner.update(batch, targets)
+                self.last_update = self.learner.update(batch)
             self.since_reduce += 1
             if reduce_due(self.since_reduce, self.p.reduce_every, self.rtm_size):
                 self._reduce()
-            if not joint:
-                targets = self._qt_targets(batch)
+            targets = self._qt_targets(batch)
             p = self.p
             if targets is not None and self.diagnostics.due(self.update_count):
-                # after the DDPG step on the batch, before the QT step (joint: after the one step)
+                # after the DDPG step on the batch, before the QT step
                 self.diagnostics.record(self.learner, batch, counts, targets, step=self.step, update=self.update_count,
                                         x=self.step, qt_version=int(self.mem.qt_version), rtm_size=int(self.rtm_size),
                                         restored=int(self.mem.restored))
             with self.ptimers("learner"):
-                if targets is not None and not joint:
+                if targets is not None:
                     self.last_update.update(self.learner.qt_critic_step(batch, targets))
                 self.learner.soft_update()
                 if p.restore_batch:       # fresh labels after this update's steps (and target update)

@@ -8,8 +8,6 @@ One COMCACT agent step, as the node drives it:
     ... reduce when due (QT trains on popped sets) ...
     learner.qt_critic_step(batch, qt_targets)          # only variant comcact
     learner.soft_update()
-With qt_step_mode joint the QT targets come first and there is no second step:
-    learner.update(batch, qt_targets)                  # one critic step on both losses, then actor step
 The DDPG baseline is the same learner with ``variant = ddpg`` (qt_critic_step refuses to run)
 and a plain :class:`~.replay.ReplayBuffer`.
 
@@ -29,7 +27,7 @@ from torch.func import functional_call
 from comper_msgs_py.arrays import Transitions
 
 from .config import ComcactConfig
-from .networks import SATURATED_PREACT, Actor, Critic, TwinCritic, compile_or_eager, soft_update
+from .networks import SATURATED_PREACT, Actor, Critic, compile_or_eager, soft_update
 from .noise import OUNoise
 
 __all__ = ["ComcactLearner"]
@@ -47,9 +45,7 @@ class ComcactLearner:
             torch.manual_seed(c.seed)
             self.actor = Actor(obs_dim, self.action_low, self.action_high, c.actor_hidden,
                                c.actor_final_init, c.batch_norm).to(self.device)
-            critic_cls = TwinCritic if c.critic == "twin" else Critic
-            self._heads = 2 if c.critic == "twin" else 1
-            self.critic = critic_cls(obs_dim, self.action_dim, c.critic_hidden, c.critic_final_init,
+            self.critic = Critic(obs_dim, self.action_dim, c.critic_hidden, c.critic_final_init,
                                      c.critic_action_input, c.batch_norm).to(self.device)
         self.actor_target = copy.deepcopy(self.actor)
         self.critic_target = copy.deepcopy(self.critic)
@@ -137,13 +133,12 @@ class ComcactLearner:
         if self.config.qt_label == "q_sa":
             v = critic(s, a)
         else:
-            v = critic.pessimistic(s2, actor(s2)) * not_done
+            v = critic(s2, actor(s2)) * not_done
         return v.cpu().numpy().astype(np.float32)
 
     @torch.no_grad()
     def td_targets(self, batch: Transitions) -> torch.Tensor:
-        """DDPG target r + gamma (1 - terminated) Q'(s', mu'(s')) (target nets, eval mode; twin: the
-        minimum of the two target critics)."""
+        """DDPG target r + gamma (1 - terminated) Q'(s', mu'(s')) (target nets, eval mode)."""
         _, _, r, s2, not_done = self._tensors(batch)
         return self._targets_fn(r, s2, not_done)
 
@@ -168,54 +163,37 @@ class ComcactLearner:
     # ------------------------------------------------------------------ updates
     def _targets(self, r: torch.Tensor, s2: torch.Tensor, not_done: torch.Tensor) -> torch.Tensor:
         """r + gamma (1 - terminated) Q'(s', mu'(s')) (pure; the caller holds no_grad and eval mode)."""
-        return r + self.config.gamma * not_done * self.critic_target.pessimistic(s2, self.actor_target(s2))
+        return r + self.config.gamma * not_done * self.critic_target(s2, self.actor_target(s2))
 
     def _critic_loss(self, s: torch.Tensor, a: torch.Tensor, y: torch.Tensor):
-        """(sum over the critic's heads of mean (Q_i(s, a) - y)^2, Q_1(s, a)) (pure up to batch-norm stats)."""
-        qs = self.critic.all_heads(s, a)
-        return sum(torch.mean((qi - y) ** 2) for qi in qs), qs[0]
+        """(mean (Q(s, a) - y)^2, Q(s, a)) (pure up to batch-norm stats)."""
+        q = self.critic(s, a)
+        return torch.mean((q - y) ** 2), q
 
     def _actor_loss(self, s: torch.Tensor, critic_params: dict) -> tuple[torch.Tensor, torch.Tensor]:
-        """(-mean Q(s, mu(s)) + actor_preact_l2 x mean x^2, share of saturated outputs), x = the actor's output
-        before tanh, saturated = |x| > SATURATED_PREACT (within 1 % of a bound). The critic's weights come as detached
+        """(-mean Q(s, mu(s)), share of saturated outputs: |x| > SATURATED_PREACT, x = the actor's output before tanh (within 1 % of a bound). The critic's weights come as detached
         tensors: the backward pass reaches the actor's weights only (the critic is still differentiated with
         respect to its input), without toggling requires_grad on the critic, which a compiled graph would guard on."""
         pre = self.actor.pre_activation(s)
         loss = -functional_call(self.critic, critic_params, (s, self.actor.squash(pre))).mean()
-        if self.config.actor_preact_l2 > 0.0:
-            loss = loss + self.config.actor_preact_l2 * torch.mean(pre ** 2)
         return loss, torch.mean((pre.detach().abs() > SATURATED_PREACT).float())
 
-    def update(self, batch: Transitions, qt_targets: np.ndarray | None = None) -> dict:
+    def update(self, batch: Transitions) -> dict:
         """One DDPG update on `batch`: critic step towards r + gamma (1 - terminated)
-        Q'(s', mu'(s')), then actor step maximising Q(s, mu(s)). No target update.
-
-        qt_targets (qt_step_mode joint only): QT(tau) per row; the critic step then minimises the DDPG
-        loss + qt_step_weight x the QT step's loss (none where the weight is 0 or qt_step_gate drops it)."""
+        Q'(s', mu'(s')), then actor step maximising Q(s, mu(s)). No target update."""
         s, a, r, s2, not_done = self._tensors(batch)
         with torch.no_grad():
             y = self._targets_fn(r, s2, not_done)
         self._last_targets = (batch, y)
-        y_qt, qt_out = None, {}
-        if qt_targets is not None:
-            if self.config.qt_step_mode != "joint":
-                raise RuntimeError("update() takes QT targets with qt_step_mode joint only; separate: qt_critic_step")
-            y_qt, qt_out = self._qt_target(batch, s, a, r, not_done, qt_targets)   # the gate tests the critic first
         self.critic.train()
         critic_loss, q = self._critic_loss_fn(s, a, y)
-        loss = critic_loss
-        if y_qt is not None:
-            qt_loss, _ = self._critic_loss_fn(s, a, y_qt)
-            loss = critic_loss + self.config.qt_step_weight * qt_loss
-            qt_out["qt_critic_loss"] = float(qt_loss.detach()) / self._heads
-            self.qt_steps += 1
-        self._step(loss, self._critic_params, self.critic_opt)
+        self._step(critic_loss, self._critic_params, self.critic_opt)
 
         actor = self._actor_update(s)      # the critic still in train mode, as for its own step (batch norm)
         self.critic.eval()
         self.updates += 1
-        out = {"critic_loss": float(critic_loss.detach()) / self._heads, **actor,
-               "q_mean": float(q.detach().mean()), "target_mean": float(y.mean()), **qt_out}
+        out = {"critic_loss": float(critic_loss.detach()), **actor,
+               "q_mean": float(q.detach().mean()), "target_mean": float(y.mean())}
         if self.config.learner_compile != "off":    # into the run's train/ scalars: what compiling cost
             out["compile_s"] = sum(r["compile_s"] for r in self.compile_report().values())
         return out
@@ -235,9 +213,8 @@ class ComcactLearner:
 
     def _qt_target(self, batch: Transitions, s: torch.Tensor, a: torch.Tensor, r: torch.Tensor,
                    not_done: torch.Tensor, qt_targets: np.ndarray) -> tuple[torch.Tensor | None, dict]:
-        """(r + gamma (1 - terminated) QT(tau) (qt_step_target ddpg_target: the DDPG target instead), or None
-        when no QT loss is taken on this batch: weight 0, or qt_step_gate finds the QT target farther from the
-        DDPG target than the critic's own TD error; the step's scalars). s, a, r, not_done: the batch's tensors,
+        """(r + gamma (1 - terminated) QT(tau), or None when qt_step_gate finds it farther from the DDPG target
+        than the critic's own TD error on this batch; the step's scalars). s, a, r, not_done: the batch's tensors,
         as the caller already made them."""
         if self.config.variant != "comcact":
             raise RuntimeError("the QT step is COMCACT's; the ddpg variant has it off")
@@ -245,10 +222,8 @@ class ComcactLearner:
         qt = self._t(qt_targets).reshape(-1)
         if qt.shape[0] != r.shape[0]:
             raise ValueError(f"{qt.shape[0]} QT targets for {r.shape[0]} transitions")
-        y = self._ddpg_targets(batch) if c.qt_step_target == "ddpg_target" else r + c.gamma * not_done * qt
+        y = r + c.gamma * not_done * qt
         out = {"qt_target_mean": float(y.mean())}
-        if c.qt_step_weight == 0.0:
-            return None, out
         if c.qt_step_gate:
             d = self._qt_gap(batch, s, a, not_done, y)
             gated = d["qt_target_rmse"] > d["critic_td_rmse"]
@@ -260,23 +235,18 @@ class ComcactLearner:
 
     def qt_critic_step(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
         """COMCACT's extra critic step (Algorithm 8 lines 29-34): minimise
-        qt_step_weight x (r + gamma (1 - terminated) QT(tau) - Q(s, a))^2 with the critic's optimiser
-        (every head of a twin critic). qt_step_gate: no step when the QT target is farther from the
-        DDPG target than the critic's own TD error on this batch. qt_step_mode joint has no second step
-        (update() takes the QT targets)."""
-        if self.config.qt_step_mode != "separate":
-            raise RuntimeError("qt_step_mode joint: the QT loss goes into update(batch, qt_targets), "
-                               "there is no separate QT step")
+        (r + gamma (1 - terminated) QT(tau) - Q(s, a))^2 with the critic's optimiser. qt_step_gate: no step
+        when the QT target is farther from the DDPG target than the critic's own TD error on this batch."""
         s, a, r, _, not_done = self._tensors(batch)
         y, out = self._qt_target(batch, s, a, r, not_done, qt_targets)
         if y is None:
             return out
         self.critic.train()
         loss, _ = self._critic_loss_fn(s, a, y)
-        self._step(loss * self.config.qt_step_weight, self._critic_params, self.critic_opt)
+        self._step(loss, self._critic_params, self.critic_opt)
         self.critic.eval()
         self.qt_steps += 1
-        return {"qt_critic_loss": float(loss.detach()) / self._heads, **out}
+        return {"qt_critic_loss": float(loss.detach()), **out}
 
     @torch.no_grad()
     def qt_diagnostics(self, batch: Transitions, qt_targets: np.ndarray) -> dict:

@@ -146,58 +146,13 @@ class ComcactConfig:
     batch_norm: bool = param(
         False, "batch normalisation of the state input and the hidden layers of actor and critic (false = "
         "plain MLPs, as Stable-Baselines3 / CleanRL DDPG)", thesis="yes (appendix B)",
-        deviation="off: with batch norm our DDPG solved InvertedPendulum-v4 (>= 950) by 20,000 steps in 0 of 3 "
-        "seeds (two collapsed to a saturated policy), without it in 3 of 3, as Stable-Baselines3 "
-        "DDPG (no batch norm) in 3 of 3 (docs/comcact.md, Decisions); -p batch_norm:=true is appendix B")
-    critic: str = param(
-        "single", "single = one critic (DDPG); twin = two critics trained on the same targets, which bootstrap "
-        "from their minimum, the actor following the first (TD3's clipped double-Q, Fujimoto et al. 2018; "
-        "no delayed actor, no target smoothing); for both variants", thesis="single (appendix B)",
-        choices=("single", "twin"),
-        deviation="twin counters the critic's overestimation (the DDPG baseline's mean Q on "
-        "InvertedDoublePendulum-v4 exceeded the largest possible discounted return); with fresh labels on "
-        "Hopper-v4 it lowered the return (122 against 258 at 50,000 steps, 3 seeds; docs/comcact.md)")
-    qt_step_weight: float = param(
-        1.0, "comcact: weight of the QT step's loss (its gradient is scaled; the step shares the critic's Adam "
-        "state, so a weight below 1 makes it smaller relative to the DDPG steps); 0 = no QT step",
-        thesis="1 (Algorithm 8 lines 29-34: a full second critic step)", minimum=0.0, maximum=1.0,
-        deviation="< 1 damps the pull towards stale QT targets (method.md 6.4); 0.5 on top of fresh labels and "
-        "the gate on Hopper-v4: below full weight, 3 seeds (docs/comcact.md)")
+        deviation="off: plain MLPs as Stable-Baselines3's and CleanRL's DDPG; with batch norm our DDPG fell into a "
+        "saturated policy (docs/studies/comcact-batch-norm.md); -p batch_norm:=true is appendix B")
     qt_step_gate: bool = param(
         False, "comcact: skip the QT step on a batch where the QT target is farther from the DDPG target (RMS over "
         "the batch) than the critic's own TD error", thesis="off (every update takes the QT step)",
-        deviation="on = the QT step only where it is closer to the DDPG target than the critic already is; with "
-        "fresh labels (restore_batch, label_critic target) at DDPG's level on Walker2d-v4, HalfCheetah-v4 and "
-        "InvertedDoublePendulum-v4, below it on Hopper-v4, ahead on none (docs/comcact.md)")
-    qt_step_mode: str = param(
-        "separate", "comcact: how the QT step enters the critic update: separate = a second critic step on "
-        "qt_step_weight x the QT loss after the DDPG step; joint = one critic step on the DDPG loss + "
-        "qt_step_weight x the QT loss (QT's targets from the model before this update's reduction; qt_step_gate "
-        "then tests the critic before the step and drops the QT term of a gated batch)",
-        thesis="separate (Algorithm 8 lines 29-34: a second optimiser step after the DDPG step)",
-        choices=("separate", "joint"),
-        deviation="joint: the critic takes one Adam step per update, as DDPG's does, towards a weighted mean of "
-        "the two targets, instead of two steps that pull it first to one target and then to the other; on top of "
-        "fresh labels and the gate, 3 seeds on Hopper-v4, Walker2d-v4, HalfCheetah-v4 and InvertedDoublePendulum-v4: "
-        "above neither the separate steps nor DDPG on any, below both on HalfCheetah-v4 (314 against 2,527 and "
-        "2,058 at 50,000 steps; docs/comcact.md)")
-    qt_step_target: str = param(
-        "qt", "comcact: the QT step's target: qt = r + gamma (1 - terminated) QT(tau); ddpg_target = the DDPG step's "
-        "own target r + gamma (1 - terminated) Q'(s', mu'(s')) on the same batch, what a QT without error would "
-        "give (QT is still fitted and queried, so its diagnostics stay QT's own; the gate never fires)",
-        thesis="qt (Algorithm 8 line 30)", choices=("qt", "ddpg_target"),
-        deviation="an ablation, not a configuration to use: ddpg_target measures the most a better QT could add, "
-        "the QT step becoming a second DDPG critic step on the batch (docs/comcact.md, a QT without error)")
-    actor_preact_l2: float = param(
-        0.0, "weight of a penalty on the actor's output before tanh: the actor minimises -mean Q(s, mu(s)) + "
-        "actor_preact_l2 x mean over batch and action dimensions of x^2, x = the output layer's value; for both "
-        "variants", thesis="0 (appendix B's actor follows the critic's gradient alone)", minimum=0.0,
-        deviation="> 0 keeps the actor out of tanh's flat ends: measured in finished runs, the actor's x sits at "
-        "|x| ~ 20-80 (saturated, gradient ~0) in 90-100 % of its outputs, and seeds stuck on one falling "
-        "policy for a whole run hold 100 % (docs/comcact.md); 1e-3 (the weight SAC's first implementation put on "
-        "its policy's pre-tanh mean) on Hopper-v4, 3 seeds: no seed stuck, fresh_labels_gate 700 against DDPG's "
-        "800 (453 without it), DDPG 1,173; on Walker2d-v4 it helps DDPG and not fresh_labels_gate, and on "
-        "HalfCheetah-v4 it costs DDPG most of its return (259 against 2,058), so no profile sets it")
+        deviation="on = the QT step only where it is closer to the DDPG target than the critic already is "
+        "(docs/studies/comcact-qt-step-gate.md)")
     critic_action_input: str = param(
         "second_hidden", "where the action enters the critic: second_hidden = concatenated to the "
         "(batch-normalised) first hidden layer's output, the input of the second hidden layer "

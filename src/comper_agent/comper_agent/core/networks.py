@@ -18,7 +18,7 @@ import warnings
 import torch
 from torch import nn
 
-__all__ = ["Actor", "Critic", "TwinCritic", "NatureCNN", "QMLP", "configure_torch", "compile_or_eager", "soft_update", "hard_update",
+__all__ = ["Actor", "Critic", "NatureCNN", "QMLP", "configure_torch", "compile_or_eager", "soft_update", "hard_update",
            "frames_to_nchw"]
 
 
@@ -172,34 +172,6 @@ class Critic(nn.Module):
             return self.out(h).squeeze(-1)
         h = self.bn2(torch.relu(self.fc2(h)))
         return self.out(torch.cat([h, action], dim=-1)).squeeze(-1)
-
-    def all_heads(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """Every Q estimate the critic holds (one here; two for TwinCritic): each is trained."""
-        return (self(obs, action),)
-
-    def pessimistic(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """The estimate bootstrapped from (the minimum over heads; one head here)."""
-        return self(obs, action)
-
-
-class TwinCritic(nn.Module):
-    """Two independent critics (TD3's clipped double-Q, Fujimoto et al. 2018): both are trained on
-    the same targets, the targets bootstrap from their minimum, and the actor follows the first
-    (``forward``)."""
-
-    def __init__(self, *args, **kwargs):
-        super().__init__()
-        self.q1 = Critic(*args, **kwargs)
-        self.q2 = Critic(*args, **kwargs)
-
-    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        return self.q1(obs, action)
-
-    def all_heads(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        return self.q1(obs, action), self.q2(obs, action)
-
-    def pessimistic(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        return torch.minimum(self.q1(obs, action), self.q2(obs, action))
 
 
 def frames_to_nchw(x: torch.Tensor, channels: int) -> torch.Tensor:
