@@ -22,6 +22,17 @@ ROS row per value (0: the store in one turn of the executor, as before chunking)
 the stationary row of the same path in the same run.
 
     python benchmarks/memory_hardening_bench.py --scenarios stationary --repeat 3 --store-chunks 0,2048
+
+``--limits`` (in-process only) measures the index's limits instead (issue 57), each against the
+normal store measured in the same run on a memory filled the same way (``--identities``):
+
+* one store of 1,024 / 4,096 / 16,384 / 65,536 new transitions whose keys jump outside the fitted
+  grid (every observation value + 1e6) against one of as many ordinary ones (the ratio stays
+  near 1 and the time per transition flat when the cost is linear in the batch);
+* ``--calls`` stores of 64 under ``max_key_abs`` 3e38 after one key value of 1e20 (and one of
+  3e37) was stored first, against the same calls without it.
+
+    python benchmarks/memory_hardening_bench.py --limits --repeat 3
 """
 from __future__ import annotations
 
@@ -146,6 +157,67 @@ def run_ros(fill, timed, big, log_dir, tag, store_chunk=None):
             "other_max_ms": max(waits) * 1e3 if waits else float("nan")}
 
 
+def shifted(t: Transitions, by: float) -> Transitions:
+    return Transitions(t.states + np.float32(by), t.actions, t.rewards, t.next_states + np.float32(by),
+                       t.terminated, t.truncated, value_labels=t.value_labels)
+
+
+def filled_memory(identities, seed, **config):
+    from comper_memory.core import CompactMemory, MemoryConfig
+    mem = CompactMemory(MemoryConfig(**config))
+    rng = np.random.default_rng(seed)
+    while mem.stats()["identities"] < identities:
+        mem.store(make(rng, 1024, "stationary", 0))
+    return mem
+
+
+def run_limits(args) -> int:
+    """Issue 57: jumping batches of growing size and a huge key value under a raised max_key_abs."""
+    sizes = (1024, 4096, 16384, 65536)
+    big = dict(max_store_batch=65536)
+    runs = {}
+    for rnd in range(args.repeat):
+        for n in sizes:
+            for kind in ("normal", "jump"):
+                mem = filled_memory(args.identities, 0, **big)
+                batch = make(np.random.default_rng(100 + rnd), n, "stationary", 0)
+                if kind == "jump":
+                    batch = shifted(batch, 1e6)
+                t0 = time.perf_counter()
+                mem.store(batch)
+                runs.setdefault((n, kind), []).append(time.perf_counter() - t0)
+            print(f"round {rnd} store({n}) normal {runs[(n, 'normal')][-1]:.3f} s  jump "
+                  f"{runs[(n, 'jump')][-1]:.3f} s", flush=True)
+        for poison in (None, 1e20, 3e37):
+            from comper_memory.core import CompactMemory, MemoryConfig
+            mem = CompactMemory(MemoryConfig(max_key_abs=3e38))
+            rng = np.random.default_rng(7)
+            if poison is not None:
+                p = make(rng, 1, "stationary", 0)
+                p.states[0, 3] = np.float32(poison)
+                mem.store(p)
+            fill, timed, _ = workload("stationary", args.identities, args.calls, 1e8, args.new, seed=rnd)
+            lat = fill_and_time(mem.store, fill, timed)
+            runs.setdefault(("poison", poison), []).append((pct(lat, 50), pct(lat, 99)))
+            print(f"round {rnd} max_key_abs 3e38, stored value {poison or 'none'}: store(64) p50 "
+                  f"{pct(lat, 50):.2f} ms  p99 {pct(lat, 99):.2f} ms", flush=True)
+    print(f"\n{args.identities} identities first (26-d keys, in-process, blas_threads 1), median of "
+          f"{args.repeat} rounds\n")
+    print("| store of | normal s | keys outside the grid s | ratio | outside, us per transition |")
+    print("|---|---|---|---|---|")
+    for n in sizes:
+        a, b = float(np.median(runs[(n, "normal")])), float(np.median(runs[(n, "jump")]))
+        print(f"| {n:,} | {a:.3f} | {b:.3f} | {b / a:.2f} | {b / n * 1e6:.1f} |")
+    print()
+    print("| max_key_abs 3e38, value stored first | store(64) p50 ms | p99 ms | p50 / none | p99 / none |")
+    print("|---|---|---|---|---|")
+    base = [float(np.median([r[k] for r in runs[("poison", None)]])) for k in (0, 1)]
+    for poison in (None, 1e20, 3e37):
+        r = [float(np.median([x[k] for x in runs[("poison", poison)]])) for k in (0, 1)]
+        print(f"| {poison or 'none'} | {r[0]:.2f} | {r[1]:.2f} | {r[0] / base[0]:.2f} | {r[1] / base[1]:.2f} |")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--identities", type=int, default=20000)
@@ -157,6 +229,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scenarios", default="stationary,drifting,poisoned", help="comma-separated subset")
     ap.add_argument("--repeat", type=int, default=3,
                     help="rounds over all scenarios (interleaved); the table gives the median of each figure")
+    ap.add_argument("--limits", action="store_true",
+                    help="the index's limits (issue 57): jumping batches of 1k-64k, a huge value under "
+                    "max_key_abs 3e38 (in-process; see the module docstring)")
     args = ap.parse_args(argv)
     from comper_memory.core import MemoryConfig
     bound = getattr(MemoryConfig(), "max_key_abs", 1e8)  # the same poison on code without the bound
@@ -167,6 +242,8 @@ def main(argv=None) -> int:
         faiss.omp_set_num_threads(1)
     except Exception:  # noqa: BLE001 - speed setting only
         pass
+    if args.limits:
+        return run_limits(args)
     chunks = [int(c) for c in args.store_chunks.split(",") if c.strip()] or [None]
     paths = [("core", None)] + ([] if args.no_ros else
                                 [("ros" if c is None else f"ros chunk {c}", c) for c in chunks])

@@ -85,7 +85,7 @@ class MemoryConfig:
         1e8, "largest magnitude of any key value (observation, action, reward; uint8 frames after "
         "frame_scale); a store holding a larger value is refused whole with the transition and key "
         "position named. Any bound up to 3e38 keeps stores fast: keys too large for the grid index's "
-        "cells (float64 rounding, docs/memory.md 'Limits') are indexed apart by their norm and slow "
+        "cells (float64 rounding, docs/memory.md, 'Limits') are indexed apart by their norm and slow "
         "only stores of keys of about the same norm. Leaves room for step counters in observations "
         "(1e8 steps)",
         deviation="not in the thesis (inputs are unbounded there)", minimum=0.0, maximum=3e38)
