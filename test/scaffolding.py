@@ -23,6 +23,15 @@ __all__ = ["load_benchmark", "synthetic_run", "write_run_bag", "transitions_cdr"
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
+def load_script(name: str):
+    """scripts/<name>.py as a module (the set-up's helper scripts that tests check, e.g. docs_tables)."""
+    path = BENCHMARKS.parent / "scripts" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def load_benchmark(name: str):
     """benchmarks/<name>.py as a module, with benchmarks/ on sys.path while it loads (the scripts import
     bench_args and each other), so a test does not depend on another test having put it there."""

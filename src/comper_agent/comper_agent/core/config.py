@@ -507,7 +507,10 @@ def parameter_table_markdown(cls) -> str:
     def cell(x) -> str:
         return str(x).replace("|", "\\|").replace("\n", " ")
 
-    rows = [f"### {cls.__name__}", "", (cls.__doc__ or "").strip(), "",
+    doc = (cls.__doc__ or "").strip()
+    if doc.startswith(f"{cls.__name__}("):     # the signature dataclass writes for a class without a docstring
+        doc = ""
+    rows = [f"### {cls.__name__}", "", *([doc, ""] if doc else []),
             "| parameter | default | thesis | description | deviation |", "|---|---|---|---|---|"]
     for f, default, _ in spec_of(cls):
         m = f.metadata
