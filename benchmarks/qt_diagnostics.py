@@ -61,7 +61,15 @@ def learner_config(run: Path):
     from comper_agent.core.config import ComperConfig, DQNConfig
     from comper_msgs_py.params import config_from_dict
     learner = yaml.safe_load((run / "config.yaml").read_text())["learner"]
-    return config_from_dict(DQNConfig if learner["variant"] == "dqn" else ComperConfig, learner)
+    # runs of earlier versions name parameters the learner no longer has (qt_gate_reference, label_network)
+    return config_from_dict(DQNConfig if learner["variant"] == "dqn" else ComperConfig, learner, ignore_unknown=True)
+
+
+def gate_reference(run: Path) -> str:
+    """What the run's qt_target_gate tested QT against: label (V(s'), the only test now) or, for runs of earlier
+    versions with qt_gate_reference target, the target network's bootstrap."""
+    import yaml
+    return yaml.safe_load((run / "config.yaml").read_text())["learner"].get("qt_gate_reference", "label")
 
 
 def gate_discount(c) -> float:
@@ -76,7 +84,7 @@ def gate_shares(recs: list[dict], discount: float) -> list[dict]:
     test), and `label_test`, the share the label test would have sent: RMS of QT(tau) - V(s') > the spread of
     V(s'), estimated as qt_target_rmse / discount > v_next_std. qt_target_rmse is over every row, terminal rows
     counting as agreeing, so where a batch has terminal rows the estimate is a lower bound on that test's
-    error. For a run whose own test was the label test (qt_gate_reference label) `gated` is that test."""
+    error. For a run whose own test was the label test (every run of this version) `gated` is that test."""
     recs = [r for r in recs if "qt_gate_on" in r]
     if not recs:
         return []
@@ -152,15 +160,13 @@ def main(argv=None) -> int:
         med = second_half_medians(recs)
         print(f"{name}: second half medians " + ", ".join(f"{k} {v:.3g}" for k, v in med.items()))
         if "qt_gate_on" in recs[-1]:
-            c = learner_config(runs[name])
+            c, ref = learner_config(runs[name]), gate_reference(runs[name])
             for g in gate_shares(recs, gate_discount(c)):
-                other = (f", the label test would have gated {g['label_test']:.0%}"
-                         if c.qt_gate_reference == "target" else "")
-                print(f"{name}: {g['part']}, {g['records']} records: the {c.qt_gate_reference} test gated "
-                      f"{g['gated']:.0%}{other}")
+                other = f", the label test would have gated {g['label_test']:.0%}" if ref == "target" else ""
+                print(f"{name}: {g['part']}, {g['records']} records: the {ref} test gated {g['gated']:.0%}{other}")
             for g in gated_update_halves(progress):
                 print(f"{name}: {g['part']} (to step {g['to_step']}), {g['updates']} updates: the "
-                      f"{c.qt_gate_reference} test gated {g['gated']:.0%} of the updates")
+                      f"{ref} test gated {g['gated']:.0%} of the updates")
         if counts:
             print(f"{name}: {counts['qt_steps_taken']} QT steps in {counts['learner_updates']} updates, "
                   f"{counts['qt_steps_gated']} skipped by qt_step_gate")

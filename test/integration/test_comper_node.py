@@ -133,9 +133,8 @@ def test_variants_use_their_sampling_source_and_target(launch, tmp_path):
         extra = ["-p", f"algorithm:={alg}", "-p", "max_steps:=300", "-p", "checkpoint_every:=0"]
         if alg == "dqn":   # the baseline starts learning at 1,000 steps (Table 35): earlier here, small replay
             extra += ["-p", "learning_starts:=100", "-p", "replay_size:=2000", "-p", "target_update_every:=100"]
-        if alg == "comper_m":   # value labels from a target copy (label_network): the node's per-step labels;
-            # and the same copy's bootstrap where QT's is off by more than its spread (qt_target_gate)
-            extra += ["-p", "label_network:=target", "-p", "target_update_every:=100", "-p", "qt_target_gate:=true"]
+        if alg == "comper_m":   # the target copy's bootstrap where QT's is off by more than its spread
+            extra += ["-p", "target_update_every:=100", "-p", "qt_target_gate:=true"]
         runs[alg] = launch("comper_agent", "comper_node", *_args(tmp_path, alg, f"{alg}{os.getpid()}", *extra),
                            name=alg)
     for alg, proc in runs.items():
@@ -154,9 +153,8 @@ def test_variants_use_their_sampling_source_and_target(launch, tmp_path):
     # RTM sampling: the batches of the updates up to the next reduction come in one call (25 per 100 steps)
     assert s["comper_f"]["sampling"]["sample_calls"] * 10 <= s["comper_f"]["updates"]
 
-    # COMPER-M: QT target, sampling from TM, QT trained by the QT trainer; with label_network target a target
-    # copy is kept (and checkpointed) for the value labels and qt_target_gate's fallback; the gate's count is
-    # reported and checkpointed
+    # COMPER-M: QT target, sampling from TM, QT trained by the QT trainer; with qt_target_gate a target copy is
+    # kept (and checkpointed) for the gate's fallback; the gate's count is reported and checkpointed
     assert s["comper_m"]["sampling"]["source"] == "tm" and s["comper_m"]["sampling"]["target"] == "qt"
     assert s["comper_m"]["sampling"]["sample_calls"] >= 40     # TM changes every step: one call per update
     assert "q_target" in st["comper_m"]["learner"] and st["comper_m"]["qt_trainer"]["qt"]["version"] >= 2

@@ -27,8 +27,7 @@ Algorithm 7 loop that they share, which reads top to bottom in ``_agent_step`` /
 One agent step (all variants): a = epsilon-greedy(Q(s)) with epsilon 1.0 -> 0.01 over 90,000
 frames -> ``<sim>/step``. The value label of transition t (``qt_label`` next_value) is
 max_a Q(s_{t+1}, a), read off the Q-values computed to act at t + 1 (0 when terminated; one extra
-forward pass only for a truncated episode end; ``label_network`` target: the target network's
-bootstrap of s_{t+1}, one target forward pass per step); ``q_sa`` (thesis-literal) stores Q(s_t, a_t) from
+forward pass only for a truncated episode end); ``q_sa`` (thesis-literal) stores Q(s_t, a_t) from
 the same forward pass. Every ``train_frequency`` (4) steps from ``learning_starts`` (100):
 
 1. one ``<memory>/store`` call with the new labelled transitions **and** the previous update's
@@ -40,8 +39,7 @@ the same forward pass. Every ``train_frequency`` (4) steps from ``learning_start
 4. Huber loss on Q(s, a_taken) against r + gamma (1 - terminated) QT(tau), QT(tau) predicted
    by the local copy of the latest QTModel (comper, comper_m), or against the target network's
    max_a Q_target(s', a) (comper_f, dqn; copied every ``target_update_every`` 1,000 steps);
-5. labels of the updated batch for its re-store: max_a Q(s', a), or the target network's bootstrap
-   with ``label_network`` target (0 when terminated).
+5. labels of the updated batch for its re-store: max_a Q(s', a) (0 when terminated).
 
 comper_f reduces through ``<memory>/reduce`` (newest label as prediction; no QT is trained, the
 variant does not use it). dqn uses an in-process frame-deduplicating replay (each frame stored
@@ -220,7 +218,7 @@ class ComperNode(AgentNode):
                    if self.uses_memory else f"; replay {c.replay_size}")
                 + (f"; target network every {c.target_update_every} steps" if self.learner.uses_target_net else "")
                 + ("; qt_target_gate: QT's or the target network's bootstrap per batch (QT tested against the "
-                   f"{c.qt_gate_reference} bootstrap)" if self.learner.gates_qt else "")
+                   "labels' bootstrap)" if self.learner.gates_qt else "")
                 + (f"; evaluation every {self.eval_every} steps x {p.eval_episodes} episodes" if self.eval_every else "")
                 + f"; profile {self.profile}, {self.network} Q-network, {c.optimizer} (loss {c.loss_reduction}), "
                   f"reward clip {c.reward_clip}; torch threads {c.num_threads}")

@@ -19,17 +19,16 @@ sits at sqrt(0.01) and the CNN barely moves). ``mean`` divides by the batch size
 rmsprop_dm, divides min_sq_grad by batch_size^2, which gives the identical step. Targets:
 
     comper, comper_m:  y = clip(r) + gamma (1 - terminated) QT(tau)       (qt_targets passed in)
-                       (qt_target_gate: the batch takes comper_f's bootstrap instead when
-                        RMS(QT(tau) - B(s')) > std(B(s')) over its non-terminal rows)
+                       (qt_target_gate: the batch takes comper_f's bootstrap B(s') instead when
+                        RMS(QT(tau) - V(s')) > std(V(s')) over its non-terminal rows)
     comper_f, dqn:     y = clip(r) + gamma (1 - terminated) max_a Q_target(s', a)
                        (double_dqn: Q_target(s', argmax_a Q(s', a)))
     dqn, n_step n > 1: y = sum_j<m gamma^j clip(r_j) + gamma^m (1 - terminated_m) bootstrap(s_m)
                        (the replay's window of m <= n steps, :class:`~.replay.NStepRewards`)
 
 clip(r) is ``reward_clip`` (default [-1, 1]); the memory and every report keep the raw reward.
-Value labels (what QT learns for comper, comper_m): max_a Q(s', a) of the network being trained, or with
-``label_network`` target the target network's bootstrap above (double_dqn applies), x (1 - terminated).
-Target network (comper_f, dqn; comper, comper_m with ``label_network`` target or ``qt_target_gate``): copied by
+Value labels (what QT learns for comper, comper_m): V(s') = max_a Q(s', a) of the network being trained,
+x (1 - terminated). Target network (comper_f, dqn; comper, comper_m with ``qt_target_gate``): copied by
 :meth:`ComperLearner.sync_target` every ``target_update_every`` agent steps. Epsilon counts frames (skipped too).
 """
 from __future__ import annotations
@@ -141,14 +140,11 @@ class ComperLearner:
             else:
                 self.q = NatureCNN(c.frame_stack, self.n_actions).to(self.device)
         self.q.eval()
-        if c.label_network == "target" and c.qt_label != "next_value":
-            raise ValueError("label_network:=target computes next_value labels; it needs qt_label:=next_value")
         # comper_f and dqn bootstrap their TD targets from the target network; comper and comper_m with
-        # label_network target keep one for their value labels only (targets come from QT)
+        # qt_target_gate keep one for the batches the gate sends to it
         self.bootstraps_from_target = c.variant in ("comper_f", "dqn")
-        self.target_labels = c.label_network == "target" and not self.bootstraps_from_target
         self.gates_qt = c.qt_target_gate and not self.bootstraps_from_target
-        self.uses_target_net = self.bootstraps_from_target or self.target_labels or self.gates_qt
+        self.uses_target_net = self.bootstraps_from_target or self.gates_qt
         self.q_target = copy.deepcopy(self.q) if self.uses_target_net else None
         if self.q_target is not None:
             for p in self.q_target.parameters():
@@ -193,16 +189,13 @@ class ComperLearner:
         return q_next.gather(1, q_online.argmax(dim=1, keepdim=True)).squeeze(1)
 
     def _label_bootstrap(self, next_states: torch.Tensor) -> torch.Tensor:
-        """The next_value label of s' before the terminal mask (``label_network``): max_a Q(s', a) of the
-        network being trained, or the target network's bootstrap."""
-        if self.target_labels:
-            return self._target_bootstrap(next_states)
+        """V(s'), the next_value label of s' before the terminal mask: max_a Q(s', a) of the network being
+        trained."""
         return self.q(next_states).max(dim=1).values
 
     @torch.no_grad()
     def value_labels(self, batch: Transitions) -> np.ndarray:
-        """next_value: the bootstrap of s' (``label_network``: max_a Q(s', a), or the target network's)
-        x (1 - terminated); q_sa: Q(s, a). float32 [N]."""
+        """next_value: V(s') = max_a Q(s', a) x (1 - terminated); q_sa: Q(s, a). float32 [N]."""
         if len(batch) == 0:
             return np.zeros(0, np.float32)
         if self.config.qt_label == "q_sa":
@@ -212,26 +205,23 @@ class ComperLearner:
         v = self._label_bootstrap(self._t(batch.next_states))
         return (v * (1.0 - self._t(batch.terminated, torch.float32))).cpu().numpy().astype(np.float32)
 
-    @torch.no_grad()
-    def next_value(self, next_obs: np.ndarray, q_online: np.ndarray) -> float:
-        """The next_value label of one transition from s' and the online Q-values at s' (those computed to
-        act there): max of them, or with ``label_network`` target the target network's bootstrap. The caller
-        applies the terminal mask."""
-        if not self.target_labels:
-            return float(np.max(q_online))
-        return float(self._target_bootstrap(self._t(next_obs)[None], self._t(q_online, torch.float32)[None])[0])
+    @staticmethod
+    def next_value(next_obs: np.ndarray, q_online: np.ndarray) -> float:
+        """The next_value label of one transition from the online Q-values at s' (those computed to act there):
+        their max. The caller applies the terminal mask."""
+        return float(np.max(q_online))
 
     @torch.no_grad()
     def qt_gate(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
-        """``qt_target_gate``'s test over the batch's non-terminal rows: error = RMS of QT(tau) - R(s'), spread =
-        std of R(s'), R = B (the target network's bootstrap) or, with ``qt_gate_reference`` label, V(s') (the
-        labels' bootstrap); gated = error > spread (the batch then bootstraps from B). No such row: not gated."""
+        """``qt_target_gate``'s test over the batch's non-terminal rows: error = RMS of QT(tau) - V(s'), spread =
+        std of V(s') (the labels' bootstrap, what QT is fitted to); gated = error > spread (the batch then
+        bootstraps from B, the target network's bootstrap). No such row: not gated."""
         live = self._t(batch.terminated, torch.float32) < 0.5
         if not bool(live.any()):
             return {"gated": False, "error": 0.0, "spread": 0.0, "bootstrap": None}
         next_states = self._t(batch.next_states)
         b = self._target_bootstrap(next_states)
-        ref = b if self.config.qt_gate_reference == "target" else self._label_bootstrap(next_states)
+        ref = self._label_bootstrap(next_states)
         qt = self._t(qt_targets, torch.float32).reshape(-1)
         error = float(torch.sqrt(torch.mean((qt[live] - ref[live]) ** 2)))
         spread = float(ref[live].std(unbiased=False))
@@ -286,8 +276,8 @@ class ComperLearner:
     @torch.no_grad()
     def qt_diagnostics(self, batch: Transitions, qt_targets: np.ndarray) -> dict:
         """How QT's bootstrap compares on this batch (no parameter moves) with V(s'), the value label a
-        re-store writes now (0 when terminated): max_a Q(s', a) of the network being trained, or with
-        ``label_network`` target the target network's bootstrap. y_QT and y_V are :meth:`targets` with
+        re-store writes now (0 when terminated): max_a Q(s', a) of the network being trained. y_QT and y_V are
+        :meth:`targets` with
         either bootstrap (``qt_target_gate`` not applied: they compare QT with V(s')).
 
         qt_target_rmse: RMS of y_QT - y_V; td_rmse: RMS of Q(s, a) - the target this update's loss sees (y_QT,

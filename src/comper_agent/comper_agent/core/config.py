@@ -224,34 +224,15 @@ class ComperConfig:
                           "max_a Q(s', a) (0 when terminated); q_sa = Q(s, a) (thesis-literal)",
                           thesis="q_sa (Algorithm 7 line 4: Q_t from epsilon-greedy)",
                           choices=("next_value", "q_sa"), deviation=_NEXT_VALUE_DEVIATION)
-    label_network: str = param(
-        "online", "network that computes the next_value labels (comper, comper_m): online = the Q-network being "
-        "trained, max_a Q(s', a); target = a copy of it refreshed every target_update_every agent steps, "
-        "Q_target(s', argmax_a Q(s', a)) with double_dqn, max_a Q_target(s', a) without (0 when terminated in "
-        "both). Only with qt_label next_value",
-        thesis="online (Algorithm 7 has no target network: the labels are the Q-network's own)",
-        choices=("online", "target"),
-        deviation="target: a QT fitted on these labels estimates the bootstrap that comper_f and dqn take from "
-        "their target network, instead of the online network's max, which each label's own max inflates and the "
-        "next label inherits (method.md 6.9)")
     qt_target_gate: bool = param(
-        False, "comper, comper_m: per batch, bootstrap from the target network (as comper_f: Q_target(s', "
-        "argmax_a Q(s', a)) with double_dqn, max_a Q_target(s', a) without) instead of QT(tau) when QT's bootstrap "
-        "differs from the target network's by more than the target network's varies between the batch's states: "
-        "RMS over non-terminal rows of QT(tau) - B(s') > their standard deviation of B(s'). Adds a target network, "
-        "copied every target_update_every agent steps",
+        False, "comper, comper_m: per batch, bootstrap from the target network B(s') (as comper_f: Q_target(s', "
+        "argmax_a Q(s', a)) with double_dqn, max_a Q_target(s', a) without) instead of QT(tau) when QT is off from "
+        "what it is fitted to by more than that varies between the batch's states: RMS over non-terminal rows of "
+        "QT(tau) - V(s') > their standard deviation of V(s'), V(s') = max_a Q(s', a), the value labels' bootstrap. "
+        "Adds a target network, copied every target_update_every agent steps",
         thesis="off (Algorithm 7: QT gives every TD target; there is no target network)",
         deviation="on = QT's target only where it carries more of the state-dependent bootstrap than it loses in "
-        "error; on Freeway, before the first reward, QT's error is a median 6 times that spread and the Q gap "
-        "collapses (docs/comper.md, \"Why 10-step COMPER misses Freeway's road\")")
-    qt_gate_reference: str = param(
-        "target", "what qt_target_gate's test compares QT(tau) with: target = the target network's bootstrap "
-        "B(s'), error and spread as above; label = V(s'), the bootstrap the value labels are computed with "
-        "(label_network: max_a Q(s', a) of the network being trained, or the target network's), error = RMS of "
-        "QT(tau) - V(s') and spread = standard deviation of V(s') over the non-terminal rows, so that only a QT "
-        "off from what it is fitted to is gated. A gated batch bootstraps from B(s') with either",
-        thesis="none (Algorithm 7 has no gate); target is the test as first measured",
-        choices=("target", "label"))
+        "error (docs/studies/comper-qt-gate-label.md)")
     n_actions: int = param(0, "outputs of the Q-network; 0 = the environment's action count (an ALE game "
                            "with the full action set: 18)", thesis="18 (appendix A.4, the ALE full action set)",
                            minimum=0)
@@ -286,8 +267,8 @@ class ComperConfig:
         thesis="clipped to [-1, 1] (chapter 5 follows Machado et al. 2018, whose DQN clips rewards as Mnih "
         "et al. 2015)", choices=("clip", "sign", "none"))
     double_dqn: bool = param(
-        False, "variants with a target network (comper_f, dqn; comper and comper_m labels with label_network "
-        "target): bootstrap from Q_target(s', argmax_a Q(s', a)) (double DQN, van Hasselt et al. 2016) instead "
+        False, "variants with a target network (comper_f, dqn; comper and comper_m with qt_target_gate): "
+        "bootstrap from Q_target(s', argmax_a Q(s', a)) (double DQN, van Hasselt et al. 2016) instead "
         "of max_a Q_target(s', a)",
         thesis="false (the DQN of Mnih et al. 2015 and Machado et al. 2018)")
     n_step: int = param(
@@ -323,7 +304,8 @@ class ComperConfig:
                                       "one frame per agent step) over which epsilon decays linearly",
                                       thesis="90,000 (method.md 4)", minimum=1)
     target_update_every: int = param(1_000, "agent steps between target-network copies "
-                                     "(comper_f, dqn; comper and comper_m with label_network target)", thesis="1,000 (Table 35)", minimum=1)
+                                     "(comper_f, dqn; comper and comper_m with qt_target_gate)", thesis="1,000 (Table 35)",
+                                     minimum=1)
     frame_pooling: str = param(
         "average", "how an ALE observation combines the last two frames of a skip (given to the embedded sim "
         "node's frame_pooling): average = colour averaging (Machado et al. 2018), max = per-pixel maximum "
@@ -419,8 +401,7 @@ COMPER_PROFILES: dict[str, dict[str, tuple]] = {
 COMPER_PROFILES["atari_100k"] = {
     **COMPER_PROFILES["data_efficient"],
     "n_step": (10, "10-step targets: above 1-step COMPER on all three games (docs/studies/comper-n-step-compact-memory.md)"),
-    "qt_target_gate": (True, "docs/studies/comper-qt-target-gate.md"),
-    "qt_gate_reference": ("label", "docs/studies/comper-qt-gate-label.md"),
+    "qt_target_gate": (True, "docs/studies/comper-qt-gate-label.md"),
     "reduce_overlap": (True, "the engineering setting of the runs behind this profile: reductions overlap learning "
                              "on the second core"),
 }
