@@ -12,8 +12,10 @@ help:  ## list the targets
 setup:  ## create/refresh the venv (cached outside the clone), build with colcon, write env.sh
 	@scripts/setup.sh
 
-run: setup  ## the main job: train COMCACT through the ROS node suite (ARGS="--ros-args -p ...")
-	@. ./env.sh && ros2 run comper_agent comcact_node $(ARGS)
+RUN_ARGS ?= -p total_steps:=20000 -p eval_every:=2500
+
+run: setup  ## the main job: comcact_node's default on InvertedPendulum-v4, 20,000 steps (ARGS="-p name:=value ...")
+	@. ./env.sh && ros2 run comper_agent comcact_node --ros-args $(RUN_ARGS) $(ARGS)
 
 test: setup  ## the whole test suite (unit + ROS integration)
 	@. ./env.sh && python -m pytest test $(PYTEST_ARGS)

@@ -49,8 +49,10 @@ def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tasks", nargs="+", default=DEFAULT_TASKS, help="gymnasium task ids")
     ap.add_argument("--algorithms", nargs="+", default=["comcact", "ddpg"],
-                    help="comcact, ddpg: comcact_node (continuous actions); comper, comper_f, comper_m, dqn: "
-                         "comper_node (discrete actions); sb3_ddpg: Stable-Baselines3 DDPG with default settings, "
+                    help="comcact, ddpg: comcact_node (continuous actions) with its default profile (auto: "
+                         "fresh_labels_gate for comcact; records of versions before 0.2.0 ran comcact with the thesis "
+                         "profile, which is now a variant: NAME=comcact:profile=thesis); comper, comper_f, comper_m, "
+                         "dqn: comper_node (discrete actions); sb3_ddpg: Stable-Baselines3 DDPG with default settings, "
                          "same evaluation protocol (benchmarks/sb3_reference.py; SB3 comes with make setup, requirements-extras.lock)")
     ap.add_argument("--variant", action="append", default=[], metavar="NAME=ALGORITHM:PARAM=VALUE[,PARAM=VALUE]",
                     help="a named configuration usable in --algorithms, e.g. "

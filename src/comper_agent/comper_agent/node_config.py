@@ -210,12 +210,13 @@ class ComcactNodeConfig(AgentRunConfig):
         "reduction flush first, so RTM and the sampled batches are the same as with 1). ddpg: the replay "
         "gets the transitions in the same blocks (an update may not yet draw the newest <= 9 of them)",
         thesis="every step",
-        minimum=1, deviation="10: the labels of up to 9 transitions are computed a few updates later; one store "
-        "call per 10 steps measured 31.0 -> 38.5 steps/s on Hopper-v4 (docs/comcact.md); 1 = the thesis")
+        minimum=1, deviation="10: the labels of up to 9 transitions are computed a few updates later, for a tenth "
+        "of the store calls (docs/studies/comcact-speed.md); 1 = the thesis")
     reduce_every: int = param(
         10, "DDPG updates between reductions (a reduction also runs whenever RTM is empty)",
         thesis="every iteration (1; Algorithm 8 line 27-28)", minimum=1,
-        deviation="10, chosen by measurement (docs/comcact.md); -p reduce_every:=1 is the thesis's cadence")
+        deviation="10: a tenth of the reductions (docs/studies/comcact-speed.md); -p reduce_every:=1 is the "
+        "thesis's cadence")
     reduce_batch: int = redefault(AgentRunConfig, "reduce_batch", 50_000)
     restore_batch: bool = param(
         False, "comcact: re-store each updated batch into TM with fresh value labels (computed after the "

@@ -76,7 +76,8 @@ class QTConfig:
         "on 4-frame Atari keys: 14.5M): one fused pass over them instead of five element-wise passes, the same "
         "arithmetic up to float rounding; off = eager (exact); default / max-autotune-no-cudagraphs = that "
         "torch.compile mode, compiled at the first step (seconds), eager with a warning if no C++ compiler is "
-        "found or compiling fails (docs/comper.md, Speed)", choices=("off", "default", "max-autotune-no-cudagraphs"))
+        "found or compiling fails (docs/studies/comper-speed.md)",
+        choices=("off", "default", "max-autotune-no-cudagraphs"))
 
 
 @dataclass(frozen=True)
@@ -194,7 +195,7 @@ class ComcactConfig:
         "off", "torch.compile of the update's loss and target functions (same arithmetic up to float rounding): "
         "off = eager; default / max-autotune-no-cudagraphs = that torch.compile mode, compiled on the first "
         "update (seconds to minutes, reported as the train/compile_s scalar), eager with a warning if no C++ compiler "
-        "is found or compiling fails; measured slower than off on the 2-core CPU (docs/agent-core.md)",
+        "is found or compiling fails (docs/studies/agent-core-learner-step-speed.md)",
         choices=("off", "default", "max-autotune-no-cudagraphs"))
     num_threads: int = param(2, "torch intra-op threads, set by the entry point", minimum=1)
     seed: int = param(0, "seed of network initialisation, noise and replay sampling", minimum=0)
@@ -392,8 +393,8 @@ COMPER_PROFILES: dict[str, dict[str, tuple]] = {
         "replay_size": (100_000, "rl-baselines3-zoo CartPole-v1: buffer_size 100000"),
         "reward_clip": ("none", "classic control rewards are already -1 / +1 per step"),
         "frame_stack": (1, "a vector observation is the whole state (the DQN baseline's 4 applies to frames)"),
-        "reduce_batch": (4_000, "keeps the reduction at the stores' pace: " + _PACE + " (CartPole-v1 COMPER, "
-                                "3 seeds: 1/3 runs reached 475 with 1,000, 3/3 with 4,000; docs/comper.md)"),
+        "reduce_batch": (4_000, "keeps the reduction at the stores' pace: " + _PACE +
+                         " (docs/studies/comper-vector-tasks.md)"),
     },
 }
 

@@ -110,8 +110,8 @@ class MemoryConfig:
         "triangle-inequality probe bound); both re-check every candidate in float64, so decisions are "
         "identical and only speed differs (docs/memory.md has the measured comparison)",
         thesis="faiss IndexFlatL2 brute force (Appendix A.1)",
-        deviation="grid is the default because it measured faster at every key size; faiss_ivf keeps "
-        "faiss as the search engine", choices=("grid", "faiss_ivf"))
+        deviation="grid is the default for speed (docs/memory.md); faiss_ivf keeps faiss as the search engine",
+        choices=("grid", "faiss_ivf"))
     index_projection_dim: int = param(
         8, "dimensions of the orthonormal projection the exact index partitions on "
         "(|P(x - y)| <= |x - y|, so no similar pair is missed; larger = fewer exact re-checks, "
