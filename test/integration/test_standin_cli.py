@@ -1,6 +1,6 @@
-"""The ros2 stand-in's inspection verbs against the running suite: a sim_node and a memory_node started
-with `ros2 run` in their own processes, then `ros2 topic|service|node|param|interface|bag ...` run as
-subprocesses, as a user types them. Where a real ros2cli is on PATH (setup.sh then leaves the stand-in
+"""The ros2 stand-in's inspection verbs against the running suite: two sim_nodes, a memory_node and a
+qt_trainer_node started with `ros2 run` in their own processes, then `ros2 topic|service|node|param|interface|bag
+...` run as subprocesses, as a user types them. Where a real ros2cli is on PATH (setup.sh then leaves the stand-in
 off PATH) the stand-in itself is still what is tested: it is called by its path."""
 import os
 import subprocess
@@ -15,7 +15,9 @@ from conftest import ROOT, NodeProcess
 STANDIN = str(ROOT / "scripts" / "ros2-standin" / "ros2")
 TASK = "InvertedPendulum-v4"
 TAG = os.getpid()
-SIM, MEM = f"sim_cli{TAG}", f"mem_cli{TAG}"
+SIM, MEM, QT, SIM2 = f"sim_cli{TAG}", f"mem_cli{TAG}", f"qt_cli{TAG}", f"sim2_cli{TAG}"
+#: a service of each node of the suite
+SERVICES = {SIM: f"/{SIM}/step", MEM: f"/{MEM}/store", QT: f"/{QT}/reduce", SIM2: f"/{SIM2}/step"}
 
 
 def ros2(*args, timeout=120, check=True):
@@ -26,10 +28,12 @@ def ros2(*args, timeout=120, check=True):
 
 
 def until(args, ok, wait_s=90):
-    """Run the command until its output satisfies ok (discovery of freshly started nodes takes a while)."""
+    """Run the list command until its output satisfies ok (freshly started nodes take a while to come up). Each try
+    waits for a 1 s quiet spell only: these checks are of the output's form; that one call with the default wait
+    finds every node is test_node_and_service_list_find_every_node_of_the_suite_each_time's."""
     deadline = time.monotonic() + wait_s
     while True:
-        res = ros2(*args, check=False)
+        res = ros2(*args, "--stable-time", "1", check=False)
         if res.returncode == 0 and ok(res.stdout):
             return res.stdout
         if time.monotonic() > deadline:
@@ -43,10 +47,15 @@ def suite(tmp_path_factory):
     procs = [NodeProcess("comper_sim", "sim_node", "--ros-args", "-p", f"env_id:={TASK}", "-r", f"__node:={SIM}",
                          log_dir=log_dir, name=SIM),
              NodeProcess("comper_memory", "memory_node", "--ros-args", "-p", "stats_period_s:=0.2",
-                         "-r", f"__node:={MEM}", log_dir=log_dir, name=MEM)]
+                         "-r", f"__node:={MEM}", log_dir=log_dir, name=MEM),
+             NodeProcess("comper_agent", "qt_trainer_node", "--ros-args", "-p", f"memory_node:={MEM}",
+                         "-r", f"__node:={QT}", log_dir=log_dir, name=QT),
+             NodeProcess("comper_sim", "sim_node", "--ros-args", "-p", f"env_id:={TASK}", "-r", f"__node:={SIM2}",
+                         log_dir=log_dir, name=SIM2)]
     try:
-        until(["node", "list"], lambda out: f"/{SIM}" in out.split() and f"/{MEM}" in out.split())
-        until(["service", "list"], lambda out: f"/{SIM}/step" in out and f"/{MEM}/store" in out)
+        # the processes take a while to start: wait until the lists show them once
+        until(["node", "list"], lambda out: {f"/{n}" for n in SERVICES} <= set(out.split()))
+        until(["service", "list"], lambda out: set(SERVICES.values()) <= set(out.split()))
         until(["topic", "list"], lambda out: f"/{SIM}/episodes" in out and f"/{MEM}/stats" in out)
         yield procs
     finally:
@@ -61,8 +70,22 @@ def test_help_says_it_is_the_stand_in():
         assert "[stand-in]" in ros2(*verb, "--help").stdout, verb
 
 
-# Without a daemon each call discovers the graph afresh; on a loaded machine a call can end before the
-# other processes' entities arrive, so the list checks repeat the command until the expected lines show.
+# Without a daemon each call discovers the graph afresh: a list waits until the graph has not changed for
+# --stable-time (3 s) and every endpoint's node is known, so one call shows every node of a running suite.
+
+@pytest.mark.slow      # ten list calls, each waiting out its quiet spell (~40 s)
+def test_node_and_service_list_find_every_node_of_the_suite_each_time(suite):
+    """Five rounds, each a `node list` and a `service list` run at once (each sees the other's hidden node come
+    and go): every call shows all four nodes, and a service of each, the first time."""
+    nodes = {f"/{n}" for n in SERVICES}
+    for _ in range(5):
+        calls = [subprocess.Popen([sys.executable, STANDIN, verb, "list"], stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True) for verb in ("node", "service")]
+        (node_out, node_err), (service_out, service_err) = (c.communicate(timeout=120) for c in calls)
+        assert [c.returncode for c in calls] == [0, 0], node_err + service_err
+        assert nodes <= set(node_out.split()), node_out
+        assert set(SERVICES.values()) <= set(service_out.split()), service_out
+
 
 def test_node_list_shows_the_nodes_and_hides_hidden_ones(suite):
     names = until(["node", "list"], lambda out: f"/{SIM}" in out.split() and f"/{MEM}" in out.split()).split()

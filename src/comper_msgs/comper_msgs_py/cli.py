@@ -34,6 +34,9 @@ __all__ = ["main", "VERBS", "msg_to_plain", "msg_to_yaml", "nest_parameters", "r
 NOTE = "[stand-in] the comper workspace's minimal replacement for ros2cli (not available from PyPI)"
 VERBS = ("topic", "service", "node", "param", "interface", "bag")
 DEFAULT_TRUNCATE = 128
+#: the quiet spell (s) after which a list verb takes the graph as complete: Fast DDS announces a participant
+#: again every 3 s, so one whose first announcements were lost or late still shows up within it
+LIST_STABLE_S = 3.0
 
 
 # ----------------------------------------------------------------------------------------- pure pieces
@@ -260,10 +263,34 @@ def _import_type(type_name: str):
 
 
 # ----------------------------------------------------------------------------------------- the graph
+#: the node name rmw gives an endpoint whose participant's node list has not arrived yet
+_UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
+
+
+def wait_until_stable(snapshot, spin, *, stable_s: float, max_s: float, clock=time.monotonic) -> bool:
+    """Discovery without a daemon: call ``spin(0.1)`` until ``snapshot()`` -> ``(state, complete)`` has
+    returned the same state, complete, for ``stable_s`` seconds; at most ``max_s`` seconds. Processes of a
+    running suite appear one by one, seconds apart on a loaded machine, so a short quiet spell is not the
+    end of discovery. True when the graph settled, False when ``max_s`` ran out first."""
+    start = clock()
+    last, complete = snapshot()
+    since = start
+    while True:
+        now = clock()
+        if complete and now - since >= stable_s:
+            return True
+        if now - start >= max_s:
+            return False
+        spin(0.1)
+        state, complete = snapshot()
+        if state != last:
+            last, since = state, clock()
+
+
 class _Graph:
     """A hidden rclpy node in its own context, for one command."""
 
-    def __init__(self, spin_time: float = 0.5):
+    def __init__(self, spin_time: float = 0.5, stable_s: float = 1.0, max_s: float = 5.0):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
@@ -273,23 +300,19 @@ class _Graph:
         self.node = Node(f"_ros2cli_standin_{os.getpid()}", context=self.context, start_parameter_services=False)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.settle(spin_time)
+        self.spin(spin_time)
+        self.settled = wait_until_stable(self._snapshot, self.spin, stable_s=stable_s, max_s=max_s)
 
     def _snapshot(self):
-        return (tuple(sorted(self.node.get_node_names_and_namespaces())),
-                tuple(sorted(n for n, _ in self.node.get_topic_names_and_types())),
-                tuple(sorted(n for n, _ in self.node.get_service_names_and_types())))
-
-    def settle(self, spin_time: float, quiet_s: float = 1.0, most_s: float = 5.0) -> None:
-        """Discovery without a daemon: spin ``spin_time``, then on until the graph has not changed for
-        ``quiet_s`` (other nodes' topics and services arrive after the nodes), at most ``most_s`` more."""
-        self.spin(spin_time)
-        last, quiet_since, end = self._snapshot(), time.monotonic(), time.monotonic() + most_s
-        while time.monotonic() < end and time.monotonic() - quiet_since < quiet_s:
-            self.spin(0.1)
-            now = self._snapshot()
-            if now != last:
-                last, quiet_since = now, time.monotonic()
+        """(the node, topic and service names, complete): complete is False while an endpoint belongs to a
+        node not known yet (its process's node list, sent after its endpoints, has not arrived)."""
+        topics = self.node.get_topic_names_and_types()
+        unknown = any(i.node_name == _UNKNOWN_NODE
+                      for name, _ in topics
+                      for i in (*self.node.get_publishers_info_by_topic(name),
+                                *self.node.get_subscriptions_info_by_topic(name)))
+        return ((tuple(sorted(self.node.get_node_names_and_namespaces())), tuple(sorted(n for n, _ in topics)),
+                 tuple(sorted(n for n, _ in self.node.get_service_names_and_types()))), not unknown)
 
     def spin(self, seconds: float) -> None:
         end = time.monotonic() + seconds
@@ -338,11 +361,22 @@ def _verb(sub, name: str, help_text: str, description: str):
     return sub.add_parser(name, help=help_text, description=f"{description} {NOTE}.")
 
 
-def _spin_arg(p):
+def _spin_arg(p, stable_s: float = 1.0):
+    """The discovery flags; `stable_s`: the verb's default quiet spell (3 s for the lists, which must see every
+    node; 1 s for the verbs that wait for the one topic or node they name)."""
     p.add_argument("--spin-time", type=float, default=0.5,
-                   help="seconds to wait for discovery (there is no daemon; default 0.5), then on until the graph "
-                        "has not changed for 1 s (at most 5 s more)")
+                   help="seconds to wait for discovery before looking at the graph (there is no daemon; default 0.5)")
+    p.add_argument("--stable-time", type=float, default=stable_s,
+                   help=f"(stand-in) then wait on until the nodes, topics and services have not changed for this "
+                        f"many seconds and every endpoint's node is known (default {stable_s:g}; 0 = only until "
+                        "every endpoint's node is known)")
+    p.add_argument("--max-wait", type=float, default=15.0,
+                   help="(stand-in) seconds the --stable-time wait may take at most (default 15)")
     p.add_argument("--no-daemon", action="store_true", help="accepted for compatibility (there is no daemon)")
+
+
+def _graph(args) -> "_Graph":
+    return _Graph(args.spin_time, stable_s=args.stable_time, max_s=args.max_wait)
 
 
 # ----------------------------------------------------------------------------------------- verbs
@@ -353,7 +387,7 @@ def topic_main(argv) -> int:
     ls.add_argument("-t", "--show-types", action="store_true", help="Additionally show the topic type")
     ls.add_argument("-c", "--count-topics", action="store_true", help="Only display the number of topics discovered")
     ls.add_argument("--include-hidden-topics", action="store_true", help="Consider hidden topics as well")
-    _spin_arg(ls)
+    _spin_arg(ls, LIST_STABLE_S)
     ec = _verb(sub, "echo", "Output messages from a topic", "Output messages from a topic.")
     ec.add_argument("topic_name")
     ec.add_argument("message_type", nargs="?", help="Type of the ROS message (e.g. 'std_msgs/msg/String'); "
@@ -389,7 +423,7 @@ def topic_main(argv) -> int:
                          "(0 = wait forever)")
     _spin_arg(hz)
     args = p.parse_args(argv)
-    with _Graph(args.spin_time) as g:
+    with _graph(args) as g:
         if args.verb == "list":
             return _topic_list(g, args)
         if args.verb == "echo":
@@ -539,9 +573,9 @@ def service_main(argv) -> int:
     ls.add_argument("-t", "--show-types", action="store_true", help="Additionally show the service type")
     ls.add_argument("-c", "--count-services", action="store_true", help="Only display the number of services")
     ls.add_argument("--include-hidden-services", action="store_true", help="Consider hidden services as well")
-    _spin_arg(ls)
+    _spin_arg(ls, LIST_STABLE_S)
     args = p.parse_args(argv)
-    with _Graph(args.spin_time) as g:
+    with _graph(args) as g:
         services = g.node.get_service_names_and_types()
     return print_names_and_types(services, hidden=args.include_hidden_services, count=args.count_services,
                                  show_types=args.show_types)
@@ -553,9 +587,9 @@ def node_main(argv) -> int:
     ls = _verb(sub, "list", "Output a list of available nodes", "Output a list of available nodes.")
     ls.add_argument("-a", "--all", action="store_true", help="Display all nodes even hidden ones")
     ls.add_argument("-c", "--count-nodes", action="store_true", help="Only display the number of nodes discovered")
-    _spin_arg(ls)
+    _spin_arg(ls, LIST_STABLE_S)
     args = p.parse_args(argv)
-    with _Graph(args.spin_time) as g:
+    with _graph(args) as g:
         names = [n for n in g.node_names() if args.all or not is_hidden_name(n)]
     if args.count_nodes:
         print(len(names))
@@ -582,9 +616,9 @@ def param_main(argv) -> int:
     for s in (ls, ge, du):
         s.add_argument("--timeout", type=float, default=10.0,
                        help="(stand-in) seconds to wait for the node's parameter services (default 10)")
-        _spin_arg(s)
+        _spin_arg(s, LIST_STABLE_S if s is ls else 1.0)
     args = p.parse_args(argv)
-    with _Graph(args.spin_time) as g:
+    with _graph(args) as g:
         if args.verb == "list":
             nodes = [_fq(args.node_name)] if args.node_name else [n for n in g.node_names() if not is_hidden_name(n)]
             rc = 0
