@@ -2,7 +2,8 @@
 comcact_node with bringup:=external), real ROS, no mocks. A short job runs to its end and the servers are
 stopped cleanly; Ctrl-C (SIGINT to the supervisor) is forwarded and the learner saves; a node killed
 from outside is reported with its exit status and the others are stopped, the bring-up exits non-zero; the
-nodes stop when the supervisor itself is killed."""
+nodes stop when the supervisor itself is killed; checkpoints hold the memory and a resumed bring-up continues
+with it, as the embedded bring-up's do."""
 import os
 import re
 import signal
@@ -20,8 +21,8 @@ LEARNER = f"learner_b{TAG}"
 
 
 class Bringup:
-    def __init__(self, tmp_path, run_id, *params, stop_timeout=20):
-        self.log_path = tmp_path / f"bringup_{run_id}.log"
+    def __init__(self, tmp_path, run_id, *params, stop_timeout=20, log_name=None):
+        self.log_path = tmp_path / f"bringup_{log_name or run_id}.log"
         self._log = open(self.log_path, "wb")
         args = ["-p", "env_id:=InvertedPendulum-v4", "-p", f"runs_root:={tmp_path}", "-p", f"run_id:={run_id}",
                 "-p", "tensorboard:=false", "-p", "transport_probe_calls:=0", "-p", "progress_period_s:=1.0",
@@ -144,6 +145,47 @@ def test_the_nodes_stop_when_the_supervisor_itself_is_killed(bringup, tmp_path):
     # the kernel signals every child at once here (no learner-first order), so a final checkpoint is not promised
     assert not alive, (f"still running after the supervisor was killed: {[(p, pids[p]) for p in alive]}\n"
                        + b.log()[-5000:])
+
+
+def _snapshot_stats(path) -> dict:
+    """What a memory snapshot holds: loaded into a memory core of the node's default configuration."""
+    from comper_memory.core import CompactMemory, MemoryConfig
+    memory = CompactMemory(MemoryConfig())
+    memory.load_snapshot(str(path))
+    return memory.stats()
+
+
+@pytest.mark.slow      # two bring-ups, each starting four processes (40-90 s on 2 busy cores)
+def test_a_resumed_bring_up_continues_with_the_memory_it_had(bringup, tmp_path):
+    """Each checkpoint of the separate processes holds the memory, beside step_<N>.pt in the run directory and
+    pruned with it; Ctrl-C, then a bring-up with resume: its memory node holds what the first one had."""
+    b = bringup("resume", "-p", "total_steps:=100000", "-p", "eval_every:=0", "-p", "checkpoint_every:=150",
+                "-p", "keep_checkpoints:=1")
+    b.wait_for(rf"^\[{LEARNER}\] .*checkpoint: \S+step_0000003\d\d\.pt \(with the memory's snapshot")   # the 2nd
+    os.kill(b.proc.pid, signal.SIGINT)
+    assert b.wait() == 0, b.log()[-5000:]
+    assert "checkpoints hold no memory contents" not in b.log()
+    checkpoints = tmp_path / "resume" / "checkpoints"
+    state = torch.load(checkpoints / "latest.pt", weights_only=True)["state"]
+    step, saved = state["counters"]["step"], state["replay"]
+    name = f"step_{step:09d}.memory"
+    assert saved["kind"] == "memory" and saved["request"] == name
+    assert os.path.samefile(saved["path"], checkpoints / name)
+    # keep_checkpoints 1: the older step files went, each with its memory snapshot
+    assert sorted(p.name for p in checkpoints.glob("step_*")) == [name, f"step_{step:09d}.pt"]
+    had = _snapshot_stats(checkpoints / name)
+    assert had["identities"] > 0 and had["rtm_size"] >= 0
+
+    b2 = bringup("resume", "-p", f"resume:={tmp_path / 'resume'}", "-p", f"total_steps:={step + 100}",
+                 "-p", "eval_every:=0", "-p", "checkpoint_every:=150", "-p", "keep_checkpoints:=1",
+                 log_name="resumed")
+    assert b2.wait() == 0, b2.log()[-5000:]
+    restored = b2.wait_for(rf"^\[{LEARNER}\] .*memory restored from (\S+): (\d+) identities, TM sets (\d+), "
+                           r"RTM (\d+)")
+    assert restored.group(1) == os.path.realpath(checkpoints / name)      # (pruned by now: the run went on)
+    assert [int(x) for x in restored.groups()[1:]] == [had["identities"], had["tm_sets"], had["rtm_size"]]
+    assert "checkpoints hold no memory contents" not in b2.log()
+    assert _checkpoint_step(tmp_path, "resume") == step + 100
 
 
 def _running(pid) -> bool:

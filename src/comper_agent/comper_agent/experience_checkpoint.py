@@ -5,11 +5,12 @@ resume (``checkpoint_replay``), so a run split over several sessions learns as o
   verified snapshot through its ``~/snapshot`` service, once no reduction is in flight and what the
   learner still holds for the memory has gone out (``quiesce``). Embedded bring-up: the embedded memory
   node's ``snapshot_root`` is the run's ``checkpoints/`` folder and the snapshot is ``step_<N>.memory``
-  beside ``step_<N>.pt`` (pruned with it, :meth:`RunDir.save_checkpoint`); external: ``<run_id>/step_<N>.memory``
-  under the memory node's own ``snapshot_root``, on its machine. On resume an embedded memory node restores
-  it in process (``MemoryNode.restore_snapshot``); an external one through ``~/snapshot``, which it allows
-  only when started with ``snapshot_service:=save_restore``, or when it loaded that snapshot at start-up
-  (``snapshot_restore``) and nothing changed since.
+  beside ``step_<N>.pt`` (pruned with it, :meth:`RunDir.save_checkpoint`), and so for an external memory node
+  whose ``snapshot_root`` is that folder (``ros2 run comper_agent bringup`` starts it so); another external one:
+  ``<run_id>/step_<N>.memory`` under its own ``snapshot_root``, on its machine. On resume an embedded memory
+  node restores it in process (``MemoryNode.restore_snapshot``); an external one through ``~/snapshot``, which
+  it allows only when started with ``snapshot_service:=save_restore``, or when it loaded that snapshot at
+  start-up (``snapshot_restore``) and nothing changed since.
 * Learners with a local replay buffer (DQN, lock-step DDPG): ``step_<N>.replay.npz`` (the buffer's
   ``state_arrays``: numpy arrays only, read without unpickling).
 
@@ -37,6 +38,39 @@ class ExperienceCheckpoint:
         self.quiesce = lambda: node.mem.store(None)
         self.warned = False
         self.error = ""          # why the last save gave no memory snapshot ("" when it did)
+        self._beside: bool | None = None
+
+    def beside_checkpoints(self) -> bool:
+        """Whether the memory node's snapshot_root is this run's checkpoints folder (asked once): the embedded
+        memory node's, or an external one's set so (``ros2 run comper_agent bringup`` does). Its snapshots are
+        then named ``step_<N>.memory`` beside ``step_<N>.pt`` and pruned with it; otherwise ``<run_id>/...``,
+        kept apart from the other runs a memory node may serve."""
+        if self._beside is None:
+            node = self.node
+            if node.embedded is not None and node.embedded.memory is not None:
+                self._beside = True
+            else:
+                import os
+                root = self._memory_parameter("snapshot_root")
+                self._beside = bool(root) and os.path.realpath(root) == os.path.realpath(node.run_dir.checkpoints)
+        return self._beside
+
+    def _memory_parameter(self, name: str) -> str:
+        """A string parameter of the external memory node, read through its parameter service ('' when unset
+        or unreadable)."""
+        from rcl_interfaces.srv import GetParameters
+        from comper_msgs_py.service_client import call
+        node = self.node
+        client = node.create_client(GetParameters, f"/{node.p.memory_node.strip('/')}/get_parameters")
+        try:
+            if not client.wait_for_service(timeout_sec=node.p.service_timeout_s):
+                return ""
+            values = call(client, GetParameters.Request(names=[name]), node.p.service_timeout_s).values
+        except ServiceError:
+            return ""
+        finally:
+            node.destroy_client(client)
+        return values[0].string_value if values else ""
 
     @property
     def kept(self) -> bool:
@@ -56,8 +90,7 @@ class ExperienceCheckpoint:
         node = self.node
         if node.mem is not None:
             name = node.run_dir.replay_path(step, "memory").name
-            embedded = node.embedded is not None and node.embedded.memory is not None
-            request = name if embedded else f"{node.run_id}/{name}"
+            request = name if self.beside_checkpoints() else f"{node.run_id}/{name}"
             try:
                 if node.mem.in_flight is not None:
                     node.mem.collect(wait=True)

@@ -11,15 +11,18 @@ bring-up: COMCACT and COMPER / COMPER-M use all three, COMPER-F and ``reducer:=m
 DDPG and DQN the simulation only), then the learner with ``-p bringup:=external``. The nodes are named by
 the learner's ``sim_node`` / ``memory_node`` / ``qt_trainer_node`` parameters.
 
-Parameters: the ``--ros-args`` given are passed to every process (as the embedded bring-up passes the
-command line to every node: a node takes the parameters it declares, ``-p env_id:=...`` reaches the sim
-and the learner, ``-p delta:=...`` the memory), except ``-r __node:=...`` which renames the learner only.
-The supervisor adds the wiring: each node's name, the sim's ``env_id`` (the learner's, default included:
-the sim node's own default is another task), the QT trainer's ``memory_node`` (and ``architecture:=comper``
-for comper_node). ALE settings that the learner's profile fixes (``frame_stack``, ``frame_pooling``) are not
+Parameters: each ``-p`` (and each ``--params-file`` value) goes to the processes whose node declares it, as
+the embedded bring-up gives the command line to every node and each takes what it declares (``-p env_id:=...``
+reaches the sim and the learner, ``-p delta:=...`` the memory); a name no node declares is refused before
+anything starts; ``-r __node:=...`` renames the learner only; other arguments go to every process
+(:mod:`.bringup_plan`). The supervisor adds the wiring: each node's name, the run id (sim and learner) and the
+memory node's ``snapshot_root`` (the run's checkpoints folder: checkpoints hold the memory, and a resume
+continues with it, as in the embedded bring-up), the sim's ``env_id`` (the learner's, default included: the
+sim node's own default is another task), the QT trainer's ``memory_node`` (and ``architecture:=comper`` for
+comper_node). ALE settings that the learner's profile fixes (``frame_stack``, ``frame_pooling``) are not
 derived: give them on the command line, where they reach the sim and the learner alike (the learner names a
-mismatch at start). ``mode:=async`` is refused: its actor processes are started by
-the learner in the embedded bring-up only.
+mismatch at start). ``mode:=async`` is refused: its actor processes are started by the learner in the
+embedded bring-up only.
 
 Supervision: the servers start first; the learner starts when their services are in the ROS graph
 (``--ready-timeout``). Every output line is printed prefixed with ``[<node name>]``. SIGINT / SIGTERM
@@ -32,8 +35,8 @@ node's code, 128 + signal for a node killed by a signal, 1 for a server that exi
 that does not stop within ``--stop-timeout`` seconds of SIGINT gets SIGTERM, then SIGKILL. If the supervisor
 itself dies (even by SIGKILL), every child gets SIGTERM from the kernel (PR_SET_PDEATHSIG) and stops.
 
-The pure part (which processes, with which arguments: :func:`plan`) is unit-tested; the supervision by
-test/integration/test_bringup_supervisor.py.
+The pure part (which processes, with which arguments: :func:`plan`, :mod:`.bringup_plan`) is unit-tested; the
+supervision by test/integration/test_bringup_supervisor.py.
 """
 from __future__ import annotations
 
@@ -45,120 +48,10 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
 
-__all__ = ["ProcSpec", "plan", "parse_ros_args", "main", "LEARNERS"]
+from .bringup_plan import LEARNERS, ProcSpec, plan
 
-LEARNERS = ("comcact_node", "comper_node")
-DEFAULT_ALGORITHM = {"comcact_node": "comcact", "comper_node": "comper"}
-
-
-@dataclass
-class ProcSpec:
-    """One process of the bring-up: ``ros2 run <package> <executable> --ros-args <ros_args>``."""
-    name: str
-    package: str
-    executable: str
-    ros_args: list[str] = field(default_factory=list)
-    services: list[str] = field(default_factory=list)     # what must be in the graph before the learner starts
-    learner: bool = False
-
-    def command(self, executable_path: str | None = None) -> list[str]:
-        exe = executable_path or self.executable
-        return [exe, "--ros-args", *self.ros_args] if self.ros_args else [exe]
-
-
-def _is_node_remap(flag: str, value: str | None) -> bool:
-    """``-r __node:=name`` (or ``--remap``, ``__name``, ``<node>:__node``): a rename of the node."""
-    return (flag in ("-r", "--remap") and value is not None and ":=" in value
-            and value.split(":=", 1)[0].split(":")[-1] in ("__node", "__name"))
-
-
-def parse_ros_args(ros_args: list[str], learner_name: str) -> tuple[dict, list[str], str]:
-    """The parameters set by ``-p``/``--param`` and by ``--params-file`` (its ``/**`` and learner-name
-    sections), the arguments without the learner's ``-r __node:=`` remap, and the learner's name."""
-    import yaml
-    values: dict = {}
-    forwarded: list[str] = []
-    name = learner_name
-    for a, b in zip(ros_args, ros_args[1:]):          # the learner's name first: it selects a params-file section
-        if _is_node_remap(a, b):
-            name = b.split(":=", 1)[1]
-    i = 0
-    while i < len(ros_args):
-        a = ros_args[i]
-        nxt = ros_args[i + 1] if i + 1 < len(ros_args) else None
-        if a in ("-p", "--param") and nxt is not None and ":=" in nxt:
-            key, value = nxt.split(":=", 1)
-            values[key.split(":")[-1]] = yaml.safe_load(value) if value else ""
-            forwarded += [a, nxt]
-            i += 2
-        elif a == "--params-file" and nxt is not None:
-            with open(nxt) as f:
-                doc = yaml.safe_load(f) or {}
-            for section in ("/**", name, "/" + name):
-                values.update((doc.get(section) or {}).get("ros__parameters") or {})
-            forwarded += [a, nxt]
-            i += 2
-        elif _is_node_remap(a, nxt):
-            i += 2
-        else:
-            forwarded.append(a)
-            i += 1
-    return values, forwarded, name
-
-
-def plan(learner: str, ros_args: list[str]) -> list[ProcSpec]:
-    """The processes for ``learner`` with the user's ``ros_args``: servers first, the learner last.
-    ValueError for what the bring-up cannot run."""
-    if learner not in LEARNERS:
-        raise ValueError(f"--learner must be one of {', '.join(LEARNERS)}, not {learner!r}")
-    values, common, learner_name = parse_ros_args(ros_args, learner)
-    algorithm = str(values.get("algorithm", DEFAULT_ALGORITHM[learner]))
-    if str(values.get("mode", "sync")) == "async":
-        raise ValueError("mode:=async is not supported by the bring-up (the learner starts its actor processes "
-                         "in the embedded bring-up only): run the learner alone, e.g. ros2 run comper_agent "
-                         "comcact_node --ros-args -p mode:=async")
-    if str(values.get("bringup", "external")) != "external":
-        raise ValueError("bringup:=embedded contradicts a multi-process bring-up: leave bringup unset")
-    if learner == "comcact_node":
-        if algorithm not in ("comcact", "ddpg"):
-            raise ValueError(f"comcact_node has no algorithm {algorithm!r} (comcact, ddpg)")
-        uses_memory = uses_qt = algorithm == "comcact"
-    else:
-        if algorithm not in ("comper", "comper_f", "comper_m", "dqn"):
-            raise ValueError(f"comper_node has no algorithm {algorithm!r} (comper, comper_f, comper_m, dqn)")
-        uses_memory = algorithm != "dqn"
-        reducer = str(values.get("reducer", "auto"))
-        uses_qt = uses_memory and (reducer == "qt_trainer" or (reducer == "auto" and algorithm != "comper_f"))
-    names = {k: str(values.get(k, k)).strip("/") for k in ("sim_node", "memory_node", "qt_trainer_node")}
-    # the task is the learner's (its default differs from the sim node's), as the embedded bring-up gives it
-    env_id = str(values.get("env_id", _learner_default(learner, "env_id")))
-    procs = [ProcSpec(names["sim_node"], "comper_sim", "sim_node",
-                      [*common, "-p", f"env_id:={env_id}", "-r", f"__node:={names['sim_node']}"],
-                      services=[f"/{names['sim_node']}/step"])]
-    if uses_memory:
-        procs.append(ProcSpec(names["memory_node"], "comper_memory", "memory_node",
-                              [*common, "-r", f"__node:={names['memory_node']}"],
-                              services=[f"/{names['memory_node']}/store"]))
-    if uses_qt:
-        extra = ["-p", "architecture:=comper"] if learner == "comper_node" else []
-        procs.append(ProcSpec(names["qt_trainer_node"], "comper_agent", "qt_trainer_node",
-                              [*common, "-p", f"memory_node:={names['memory_node']}", *extra,
-                               "-r", f"__node:={names['qt_trainer_node']}"],
-                              services=[f"/{names['qt_trainer_node']}/reduce"]))
-    rename = ["-r", f"__node:={learner_name}"] if learner_name != learner else []
-    procs.append(ProcSpec(learner_name, "comper_agent", learner, [*common, "-p", "bringup:=external", *rename],
-                          learner=True))
-    return procs
-
-
-def _learner_default(learner: str, name: str):
-    import dataclasses
-    from .node_config import ComcactNodeConfig, ComperNodeConfig
-    cls = ComcactNodeConfig if learner == "comcact_node" else ComperNodeConfig
-    (f,) = [f for f in dataclasses.fields(cls) if f.name == name]
-    return f.default
+__all__ = ["Supervisor", "plan", "main"]       # plan: also what the launch file imports from here
 
 
 # ----------------------------------------------------------------------------------------- supervision
