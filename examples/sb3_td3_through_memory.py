@@ -9,7 +9,8 @@ is used: this is what any SB3 user writes.
     python examples/sb3_td3_through_memory.py --spawn-memory --total-steps 300   # starts its own memory node
 
 At the end it prints the memory's statistics (identities, similarity hits) and a deterministic
-evaluation of the trained policy, and writes them as JSON with --out.
+evaluation of the trained policy, and writes them as JSON with --out. On a fresh memory node the same
+--seed gives the same evaluation: SB3 seeds the buffer's sampling stream with the model's seed.
 """
 from __future__ import annotations
 
@@ -64,7 +65,7 @@ def main(argv=None) -> int:
         t0 = time.monotonic()
         model.learn(args.total_steps)
         elapsed = time.monotonic() - t0
-        stats = model.replay_buffer.buffer.memory.stats()
+        stats = model.replay_buffer.buffer.stats()     # after the last collected transitions are stored
         model.replay_buffer.close()
         returns = []
         eval_env = gym.make(args.env_id)

@@ -12,7 +12,13 @@ Works with SB3's off-policy algorithms that use a plain ``ReplayBuffer`` (DDPG, 
 Box or Discrete spaces. Transitions go to a running memory node (``ros2 run comper_memory
 memory_node``), in this or another process or host, through :class:`~.replay_buffer.MemoryReplayBuffer`;
 samples are uniform over the memory's identities (near-duplicate transitions count once; with
-continuous states and delta 1e-4 that is every transition). ``TimeLimit.truncated`` is kept apart:
+continuous states and delta 1e-4 that is every transition), and every transition added before a
+sample is in its draw. Stores go in batches of ``store_every`` and batches are fetched ``prefetch``
+at a time in the background, the transitions added since mixed in exactly (replay_buffer's module
+text), so the learner rarely waits for the node. ``seed`` (default: drawn from numpy's global
+generator, which SB3 seeds with the model's ``seed`` just before it builds the buffer) makes the
+draws reproducible: the same model seed on a fresh memory node gives the same batches, and with
+SB3's own determinism the same policy. ``TimeLimit.truncated`` is kept apart:
 the stored ``terminated`` is ``done and not truncated``, and the ``dones`` SB3 receives from
 ``sample`` are those terminations, as SB3's own buffer with ``handle_timeout_termination``.
 
@@ -34,7 +40,7 @@ from stable_baselines3.common.buffers import BaseBuffer
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from .client import MemoryClient
-from .replay_buffer import DEFAULT_LABEL, MemoryReplayBuffer
+from .replay_buffer import DEFAULT_LABEL, DEFAULT_PREFETCH, DEFAULT_STORE_EVERY, MemoryReplayBuffer
 
 __all__ = ["CompactReplayBuffer"]
 
@@ -42,12 +48,15 @@ __all__ = ["CompactReplayBuffer"]
 class CompactReplayBuffer(BaseBuffer):
     """SB3 replay buffer backed by a memory node (module text). SB3 passes the first six
     arguments; ``replay_buffer_kwargs`` may give memory_node (its name) or memory (a MemoryClient),
-    store_every (transitions per store call, default n_envs), timeout, rate_limit_timeout."""
+    store_every (transitions per store call, default DEFAULT_STORE_EVERY), prefetch (batches per
+    request, default DEFAULT_PREFETCH; 0: one request per sample), seed (the buffer's sampling
+    stream; default from numpy's global generator, i.e. the model's seed), timeout, rate_limit_timeout."""
 
     def __init__(self, buffer_size: int, observation_space: spaces.Space, action_space: spaces.Space,
                  device: Any = "auto", n_envs: int = 1, optimize_memory_usage: bool = False,
                  handle_timeout_termination: bool = True, *, memory_node: str = "memory_node",
-                 memory: MemoryClient | None = None, store_every: int = 0, timeout: float = 30.0,
+                 memory: MemoryClient | None = None, store_every: int = DEFAULT_STORE_EVERY,
+                 prefetch: int = DEFAULT_PREFETCH, seed: int | None = None, timeout: float = 30.0,
                  rate_limit_timeout: float | None = None, default_label: float = DEFAULT_LABEL):
         if optimize_memory_usage:
             raise ValueError("CompactReplayBuffer: optimize_memory_usage is not supported (the memory node "
@@ -59,10 +68,12 @@ class CompactReplayBuffer(BaseBuffer):
         super().__init__(buffer_size, observation_space, action_space, device, n_envs=n_envs)
         self.handle_timeout_termination = handle_timeout_termination
         self.discrete = isinstance(action_space, spaces.Discrete)
+        if seed is None:   # SB3 calls set_random_seed(model seed) before it builds its buffer
+            seed = int(np.random.randint(0, 2**31 - 1))
         client = memory if memory is not None else MemoryClient.standalone(
             memory_node, timeout=timeout, rate_limit_timeout=rate_limit_timeout)
         try:
-            self.buffer = MemoryReplayBuffer(client, store_every=store_every or n_envs,
+            self.buffer = MemoryReplayBuffer(client, store_every=store_every, prefetch=prefetch, seed=seed,
                                              default_label=default_label, run_id="sb3")
         except Exception:
             if memory is None:
@@ -99,11 +110,15 @@ class CompactReplayBuffer(BaseBuffer):
         raise NotImplementedError("CompactReplayBuffer draws in the memory node: use sample()")
 
     def close(self) -> None:
-        """Send what is collected and close the client (if this buffer created it)."""
-        if self._owns_client:
+        """Send what is collected, stop the buffer's background thread and close the client (if this
+        buffer created it). Idempotent."""
+        client = self.buffer.memory
+        try:
             self.buffer.close()
-        else:
-            self.buffer.flush()
+        finally:
+            if self._owns_client and client is not None:
+                self._owns_client = False
+                client.close()
 
     def __getstate__(self):
         raise TypeError("CompactReplayBuffer holds a ROS client and cannot be pickled; save the memory with "
