@@ -66,8 +66,8 @@ def test_each_process_gets_the_parameters_its_node_declares(tmp_path):
     sim, mem, qt, learner = plan("comcact_node", ["--params-file", str(f), "-p", "seed:=4", "-p", "memory_node:=mem7",
                                                   "-p", "mem7:rtm_capacity:=99", "--log-level", "warn"], now=NOW)
     assert sim.ros_args[:5] == ["--log-level", "warn", "-p", "seed:=4", "-p"] and "env_id:=Hopper-v4" in sim.ros_args
-    assert mem.ros_args[:10] == ["--log-level", "warn", "-p", "delta:=0.5", "-p", "tm_capacity:=77", "-p", "key_size:=11",
-                                 "-p", "mem7:rtm_capacity:=99"]
+    assert mem.ros_args[:10] == ["--log-level", "warn", "-p", "delta:=0.5", "-p", "tm_capacity:=77",
+                                 "-p", "key_size:=11", "-p", "mem7:rtm_capacity:=99"]
     assert not any("seed" in a or "total_steps" in a for a in mem.ros_args + qt.ros_args)
     assert qt.ros_args[:2] == ["--log-level", "warn"] and "memory_node:=mem7" in qt.ros_args
     # the file's bringup: embedded is replaced by the bring-up's external (a -p saying embedded is refused)
@@ -75,6 +75,12 @@ def test_each_process_gets_the_parameters_its_node_declares(tmp_path):
                                      "-p", "batch_norm:=false", "-p", "seed:=4", "-p", "memory_node:=mem7"]
     assert "bringup:=embedded" not in learner.ros_args and "bringup:=external" in learner.ros_args
     assert not any("delta" in a or "tm_capacity" in a or "rtm_capacity" in a for a in learner.ros_args)
+    # rcl applies the settings in command-line order, the last one winning: so are they passed on
+    g = tmp_path / "g.yaml"
+    g.write_text("/**:\n  ros__parameters:\n    seed: 7\n")
+    sim, *_, learner = plan("comcact_node", ["-p", "seed:=3", "--params-file", str(g)], now=NOW)
+    assert [a for a in sim.ros_args if a.startswith("seed")] == ["seed:=3", "seed:=7"]
+    assert f"run_id:={default_run_id('comcact', 'InvertedPendulum-v4', 7, now=NOW)}" in learner.ros_args
 
 
 def test_a_parameter_no_node_declares_is_refused_before_anything_starts(capsys):
@@ -163,6 +169,9 @@ def test_a_resume_continues_the_checkpoints_run_and_its_memory_loads_the_saved_s
     assert not any("snapshot_restore" in a for a in plan("comcact_node", ["-p", f"resume:={run}"])[1].ros_args)
     with pytest.raises(ValueError, match="resume:=.*no checkpoint at"):
         plan("comcact_node", ["-p", f"resume:={tmp_path / 'none'}"])
+    RunDir(tmp_path, "r4").save_checkpoint({"counters": {"step": 1}}, 1)
+    with pytest.raises(ValueError, match="resume:=.*the checkpoint has no 'run'"):
+        plan("comcact_node", ["-p", f"resume:={tmp_path / 'r4'}"])
 
 
 @pytest.mark.parametrize("args, message", [

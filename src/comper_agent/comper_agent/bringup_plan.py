@@ -50,41 +50,43 @@ def _is_node_remap(flag: str, value: str | None) -> bool:
 @dataclass
 class RosArgs:
     """The user's ``--ros-args`` taken apart, so that each process gets the parameters its node declares."""
-    params: list[tuple[str, str, str]]     # each -p as given: (its text, the node it names or '', the parameter)
-    files: list[tuple[str, dict]]          # each --params-file: (path, its YAML)
-    other: list[str]                       # everything else (remaps but the learner's rename, --log-level, ...)
-    name: str                              # the learner's node name
+    settings: list[tuple]     # in command-line order (rcl: a later setting wins): ("-p", text, node named or '',
+                              # parameter) for each -p as given, ("file", path, its YAML) for each --params-file
+    other: list[str]          # everything else (remaps but the learner's rename, --log-level, ...)
+    name: str                 # the learner's node name
+
+    def _reaching(self, node: str, files: bool = True):
+        """(name, value, the -p text or None) of each setting that reaches the node named `node`, in order: a
+        file's ``/**``, ``node`` and ``/node`` sections; a ``-p``, or a ``-p node:name:=v`` naming this node."""
+        import yaml
+        for item in self.settings:
+            if item[0] == "-p":
+                _, text, target, name = item
+                if target in ("", node):
+                    value = text.split(":=", 1)[1]
+                    yield name, (yaml.safe_load(value) if value else ""), text
+            elif files:
+                _, path, doc = item
+                for section in ("/**", node, "/" + node):
+                    entry = doc.get(section) or {}
+                    params = entry.get("ros__parameters") if isinstance(entry, dict) else None
+                    if params is not None and not isinstance(params, dict):
+                        raise ValueError(f"--params-file {path}: section {section!r} has no ros__parameters mapping")
+                    for name, value in (params or {}).items():
+                        yield name, value, None
 
     def values(self, node: str, *, files: bool = True) -> dict:
-        """What reaches the node named `node`: its sections of the params files (``/**``, ``node``, ``/node``),
-        then the ``-p`` (one naming a node, ``-p other:name:=v``, reaches that node only), as rcl applies them."""
-        import yaml
-        out: dict = {}
-        for path, doc in self.files if files else ():
-            for section in ("/**", node, "/" + node):
-                entry = doc.get(section) or {}
-                params = entry.get("ros__parameters") if isinstance(entry, dict) else None
-                if params is not None and not isinstance(params, dict):
-                    raise ValueError(f"--params-file {path}: section {section!r} has no ros__parameters mapping")
-                out.update(params or {})
-        for text, target, name in self.params:
-            if target in ("", node):
-                value = text.split(":=", 1)[1]
-                out[name] = yaml.safe_load(value) if value else ""
-        return out
+        """The parameter values that reach the node named `node` (`files` False: from ``-p`` only)."""
+        return {name: value for name, value, _ in self._reaching(node, files)}
 
     def route(self, node: str, declared: frozenset, wired: tuple = ()) -> list[str]:
-        """The arguments for the process of `node`, which declares `declared`: the other arguments, each params-file
-        value it declares as a ``-p`` (the files name parameters of other nodes too, which a node refuses), then
-        the ``-p`` it declares, as given; not those in `wired` (the bring-up sets them)."""
+        """The arguments for the process of `node`, which declares `declared`: the other arguments, then, in their
+        order, the ``-p`` it declares as given and each params-file value it declares as a ``-p`` (a file names
+        other nodes' parameters too, which a node refuses); not those in `wired` (the bring-up sets them)."""
         out = list(self.other)
-        given = {n for _, t, n in self.params if t in ("", node)}
-        for name, value in self.values(node, files=True).items():
-            if name in declared and name not in given and name not in wired:
-                out += ["-p", f"{name}:={_yaml_value(value)}"]
-        for text, target, name in self.params:
-            if name in declared and target in ("", node) and name not in wired:
-                out += ["-p", text]
+        for name, value, text in self._reaching(node):
+            if name in declared and name not in wired:
+                out += ["-p", text or f"{name}:={_yaml_value(value)}"]
         return out
 
 
@@ -99,7 +101,7 @@ def parse_ros_args(ros_args: list[str], learner_name: str) -> RosArgs:
     """The ``-p``/``--param`` settings, the ``--params-file`` files (loaded), the other arguments (without the
     learner's ``-r __node:=`` remap) and the learner's name."""
     import yaml
-    params, files, other = [], [], []
+    settings, other = [], []
     name = learner_name
     i = 0
     while i < len(ros_args):
@@ -107,7 +109,7 @@ def parse_ros_args(ros_args: list[str], learner_name: str) -> RosArgs:
         nxt = ros_args[i + 1] if i + 1 < len(ros_args) else None
         if a in ("-p", "--param") and nxt is not None and ":=" in nxt:
             key = nxt.split(":=", 1)[0].split(":")
-            params.append((nxt, key[0].strip("/") if len(key) > 1 else "", key[-1]))
+            settings.append(("-p", nxt, key[0].strip("/") if len(key) > 1 else "", key[-1]))
             i += 2
         elif a == "--params-file" and nxt is not None:
             try:
@@ -117,7 +119,7 @@ def parse_ros_args(ros_args: list[str], learner_name: str) -> RosArgs:
                 raise ValueError(f"--params-file {nxt}: {exc}") from None
             if not isinstance(doc, dict):
                 raise ValueError(f"--params-file {nxt}: not a mapping of node names to ros__parameters")
-            files.append((nxt, doc))
+            settings.append(("file", nxt, doc))
             i += 2
         elif _is_node_remap(a, nxt):
             name = nxt.split(":=", 1)[1]
@@ -125,7 +127,7 @@ def parse_ros_args(ros_args: list[str], learner_name: str) -> RosArgs:
         else:
             other.append(a)
             i += 1
-    return RosArgs(params, files, other, name)
+    return RosArgs(settings, other, name)
 
 
 #: the parameters rclpy declares on every node
@@ -230,7 +232,8 @@ def plan(learner: str, ros_args: list[str], *, now: float | None = None) -> list
                 snapshots["snapshot_restore"] = run.restore
         procs.append(ProcSpec(mem, "comper_memory", "memory_node",
                               [*args.route(mem, declared[mem], tuple(snapshots)),
-                               *(x for k, v in snapshots.items() for x in ("-p", f"{k}:={v}")), "-r", f"__node:={mem}"],
+                               *(x for k, v in snapshots.items() for x in ("-p", f"{k}:={v}")),
+                               "-r", f"__node:={mem}"],
                               services=[f"/{mem}/store"]))
     if uses_qt:
         qt = names["qt_trainer_node"]
@@ -280,9 +283,11 @@ def run_plan(learner: str, algorithm: str, env_id: str, values: dict, *, now: fl
     from .run_io import resume_checkpoint
     try:
         ck, state, _ = resume_checkpoint(resume)
-    except (OSError, KeyError, RuntimeError, ValueError) as exc:
+        run_id = str(state["run"]["run_id"])
+    except KeyError as exc:
+        raise ValueError(f"resume:={resume}: the checkpoint has no {exc}: not a learner's checkpoint") from None
+    except (OSError, RuntimeError, ValueError) as exc:
         raise ValueError(f"resume:={resume}: {exc}") from None
-    run_id = str(state["run"]["run_id"])
     path = os.path.abspath(os.path.join(ck.parent.parent.parent, run_id))
     root = os.path.join(path, "checkpoints")
     saved = state.get("replay") or {}
