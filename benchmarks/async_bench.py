@@ -70,7 +70,7 @@ def _run(cmd, log: Path, domain: int, timeout: float) -> tuple[int, float]:
 
 def node_row(args, base: Path, name: str, domain: int) -> dict:
     import torch
-    from comper_agent.run_io import MetricsLog
+    from comper_agent.nodes.run_io import MetricsLog
     alg, _, mode = name.partition("_")
     rid = name
     cmd = [shutil.which("ros2") or "ros2", "run", "comper_agent", "comcact_node", "--ros-args",
@@ -90,7 +90,7 @@ def node_row(args, base: Path, name: str, domain: int) -> dict:
 
 
 def sb3_row(args, base: Path, domain: int) -> dict:
-    from comper_agent.run_io import MetricsLog
+    from comper_agent.nodes.run_io import MetricsLog
     run = base / "runs" / "sb3_ddpg"
     cmd = [sys.executable, str(ROOT / "benchmarks" / "sb3_reference.py"), "--env-id", args.env_id,
            "--total-steps", str(args.steps), "--eval-every", "0", "--run-dir", str(run)]

@@ -50,7 +50,7 @@ import warnings
 from pathlib import Path
 
 from comper_agent.core.protocol import protocol_summary
-from comper_agent.run_io import MetricsLog
+from comper_agent.nodes.run_io import MetricsLog
 from learning_bench import claim_domain, parse_variants, release_domain   # one claim registry for every run
 from bench_args import raise_on_sigterm, resume_status, stop_runs
 

@@ -30,10 +30,10 @@ import numpy as np
 import torch
 import yaml
 
-from comper_agent.comper_node import ComperNode
+from comper_agent.nodes.comper_node import ComperNode
 from comper_agent.core.comper import ComperLearner, clip_rewards
-from comper_agent.value_checks import load_policy
-from comper_agent.run_io import resolve_checkpoint
+from comper_agent.offline.value_checks import load_policy
+from comper_agent.nodes.run_io import resolve_checkpoint
 from comper_msgs_py.params import config_from_dict
 from comper_sim.core.config import SimConfig
 from comper_sim.core.envs import make_env

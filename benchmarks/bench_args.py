@@ -96,7 +96,7 @@ def last_checkpoint(run, algorithms: tuple, why: str):
     tools; a run of another algorithm is refused with ValueError ("<run>: algorithm X <why>")."""
     import yaml
     from comper_agent.core.checkpoint import load_checkpoint
-    from comper_agent.run_io import resolve_checkpoint
+    from comper_agent.nodes.run_io import resolve_checkpoint
     cfg = yaml.safe_load((Path(run) / "config.yaml").read_text())
     if cfg["algorithm"] not in algorithms:
         raise ValueError(f"{run}: algorithm {cfg['algorithm']} {why}")
@@ -125,7 +125,7 @@ def resume_status(run_dir: Path, budget: int | None = None) -> str:
     resume takes (run_io.resume_checkpoint: past a final checkpoint that a failed service left without them,
     to the newest that holds them). ValueError for a checkpoint before its budget without them (older code,
     or checkpoint_replay off): going on from an empty memory would change what the run learns from."""
-    from comper_agent.run_io import resume_checkpoint
+    from comper_agent.nodes.run_io import resume_checkpoint
     if not (Path(run_dir) / "checkpoints" / "latest.pt").exists():
         return "new"
     _, state, _ = resume_checkpoint(run_dir)

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import yaml
 
-from comper_agent.value_checks import load_policy
+from comper_agent.offline.value_checks import load_policy
 from comper_sim.core.config import SimConfig
 from comper_sim.core.envs import make_env
 

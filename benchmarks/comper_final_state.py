@@ -29,7 +29,7 @@ def final_state(run: Path, batches: int, seed: int) -> dict:
     from comper_agent.core.comper import ComperLearner
     from comper_agent.core.config import ComperConfig
     from comper_agent.core.qt import QTModel
-    from comper_agent.qt_diagnostics import sampled_entry_stats
+    from comper_agent.nodes.qt_diagnostics import sampled_entry_stats
     from comper_memory.core import CompactMemory, MemoryConfig, transition_keys
     from comper_msgs_py.params import config_from_dict
 

@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 
 from bench_args import raise_on_sigterm, resume_status, stop_nodes, stop_runs
-from comper_agent.run_io import MetricsLog
+from comper_agent.nodes.run_io import MetricsLog
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPER_ALGORITHMS = ["comper", "comper_f", "comper_m", "dqn"]

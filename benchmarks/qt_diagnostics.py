@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from comper_agent.run_io import MetricsLog
+from comper_agent.nodes.run_io import MetricsLog
 from learning_bench import went_on_with   # the benches' rule for a resumed run's records
 
 

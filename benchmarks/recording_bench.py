@@ -246,7 +246,7 @@ def overhead_record_param(args) -> dict:
 
 
 def evaluate_time(args) -> dict:
-    from comper_agent.evaluate import evaluate
+    from comper_agent.offline.evaluate import evaluate
     from scaffolding import synthetic_run
     from scaffolding import write_run_bag
     tmp = Path(tempfile.mkdtemp(prefix="evalbench_"))

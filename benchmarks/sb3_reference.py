@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     from stable_baselines3 import DDPG
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from comper_agent.run_io import MetricsLog
+    from comper_agent.nodes.run_io import MetricsLog
     from comper_sim.core import SimBridge, SimConfig
 
     torch.set_num_threads(max(1, args.threads))

@@ -104,7 +104,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     policy = None
     if args.policy:
-        from comper_agent.value_checks import load_policy
+        from comper_agent.offline.value_checks import load_policy
         policy = load_policy(args.policy)
     rows = []
     print("| task | keys | delta | identities per 1,000 transitions | hit rate | set size mean / p90 / max |")

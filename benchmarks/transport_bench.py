@@ -29,7 +29,7 @@ def _measure_ros(layout: str, env_id: str, steps: int) -> float:
     from rclpy.node import Node
     from rclpy.parameter import Parameter
 
-    from comper_agent.bringup import Spinner
+    from comper_agent.nodes.bringup import Spinner
     from comper_msgs_py.service_client import call
     from comper_msgs.srv import Reset, Step
     from comper_msgs_py.convert import numpy_to_array

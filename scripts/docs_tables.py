@@ -28,7 +28,7 @@ BLOCK = re.compile(r"(<!-- generated: (?P<expr>[^;>]+?)\s*(?:;[^>]*)?-->\n)(?P<b
 
 def namespace() -> dict:
     from comper_agent.core import config as agent_config
-    from comper_agent import node_config
+    from comper_agent.nodes import node_config
     from comper_memory.core import config as memory_config
     from comper_sim.core import config as sim_config
     ns = {}

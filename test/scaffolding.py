@@ -12,7 +12,7 @@ import numpy as np
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
-from comper_agent.recording import ChunkedBagWriter, comper_typestore, make_qos
+from comper_agent.recording.bags import ChunkedBagWriter, comper_typestore, make_qos
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.qos import RECORDED_QOS
 

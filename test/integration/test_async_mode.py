@@ -13,10 +13,10 @@ import time
 import numpy as np
 import torch
 
-from comper_agent import run_io
+from comper_agent.nodes import run_io
 from comper_agent.core.comcact import ComcactLearner
 from comper_agent.core.config import ComcactConfig
-from comper_agent.policy_weights import POLICY_QOS, config_of_policy, load_policy_msg
+from comper_agent.nodes.policy_weights import POLICY_QOS, config_of_policy, load_policy_msg
 from comper_msgs.msg import EpisodeSummary, PolicyWeights
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.qos import RECORDED_QOS as SUMMARY_QOS

@@ -14,8 +14,8 @@ import pytest
 import torch
 import yaml
 
-from comper_agent import run_io
-from comper_agent.comcact_node import SUMMARY_QOS
+from comper_agent.nodes import run_io
+from comper_agent.nodes.comcact_node import SUMMARY_QOS
 from comper_msgs.msg import EpisodeSummary, EvaluationResult
 from conftest import spin_once
 from scaffolding import load_benchmark
@@ -178,7 +178,7 @@ def test_record_parameter_writes_a_bag_that_reproduces_the_training_returns(laun
     """record:=true: the recorder (a child process by default, or in-process) bags the run; the bag's
     episode returns equal those the node logged, every training episode's transitions are in it,
     and evaluate reads it."""
-    from comper_agent import offline
+    from comper_agent.offline import runs as offline
 
     proc = launch("comper_agent", "comcact_node",
                   *_args(tmp_path, "rec", "-p", "algorithm:=ddpg", "-p", "total_steps:=400", "-p", "warmup_steps:=150",
@@ -206,7 +206,7 @@ def test_record_keeps_every_episode_when_the_agent_outpaces_the_recorder(launch,
     the recorder writes them: the agent waits at record_window unwritten episodes (RecordingFlow), so
     the topics' KEEP_LAST 100 queues drop none (before the flow control, 27 % went missing). The
     in-process run also records without compression (record_compression:=none reaches the recorder)."""
-    from comper_agent import offline
+    from comper_agent.offline import runs as offline
 
     compression = "zstd" if where == "child" else "none"
     proc = launch("comper_agent", "comcact_node",
@@ -245,7 +245,7 @@ def test_agent_goes_on_without_waiting_when_its_recorder_process_dies(launch, tm
 def test_sigkill_of_the_agent_leaves_a_closed_bag_with_every_logged_episode(launch, tmp_path):
     """record_process:=child: SIGKILL of the agent makes the kernel send SIGTERM to the recorder
     process (PR_SET_PDEATHSIG), which writes what it holds and closes the bag."""
-    from comper_agent import offline
+    from comper_agent.offline import runs as offline
 
     proc = launch("comper_agent", "comcact_node",
                   *_args(tmp_path, "killed", "-p", "algorithm:=ddpg", "-p", "total_steps:=100000",

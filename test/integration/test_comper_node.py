@@ -19,8 +19,8 @@ import numpy as np
 import torch
 import yaml
 
-from comper_agent import run_io
-from comper_agent.comper_node import SUMMARY_QOS, TRANSITIONS_QOS
+from comper_agent.nodes import run_io
+from comper_agent.nodes.comper_node import SUMMARY_QOS, TRANSITIONS_QOS
 from comper_msgs.msg import EpisodeSummary, TransitionBatch
 from comper_msgs_py.convert import batch_to_transitions
 from conftest import spin_once
@@ -180,7 +180,7 @@ def test_record_parameter_bags_the_run_with_every_episode_and_its_transitions(la
     """record:=true (shared with comcact_node): the in-process recorder bags ~/transitions and
     ~/episodes; the bag's returns equal the logged ones and every episode's transitions are in it
     (dqn: the cheapest variant; its transitions carry no labels)."""
-    from comper_agent import offline
+    from comper_agent.offline import runs as offline
 
     tag = f"r{os.getpid()}"
     proc = launch("comper_agent", "comper_node",

@@ -12,7 +12,7 @@ from comper_msgs.msg import QTModel
 from comper_msgs.srv import Reduce, Sample, Store
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.convert import batch_to_transitions, transitions_to_batch
-from comper_agent.qt_trainer_node import QT_MODEL_QOS, msg_to_qt
+from comper_agent.nodes.qt_trainer_node import QT_MODEL_QOS, msg_to_qt
 from comper_memory.core import transition_keys
 from conftest import call, spin_once
 

@@ -90,7 +90,7 @@ def test_records_and_evaluate_reproduces_published_returns(launch, ros_node, tmp
     assert rec.stop() == 0
     assert "bag closed" in rec.log_path.read_text()
     # the default bag: zstd-compressed MCAP chunks, each with its CRC, and metadata naming the distro
-    from comper_agent.recording import bag_info, check_mcap_file
+    from comper_agent.recording.bags import bag_info, check_mcap_file
     info = bag_info(bag)
     assert info["ros_distro"] == "jazzy" and '"compression": "zstd"' in info["custom_data"]["recorder"]
     for f in bag.glob("*.mcap"):
@@ -117,7 +117,7 @@ def test_records_and_evaluate_reproduces_published_returns(launch, ros_node, tmp
 
 
 def test_sigkill_leaves_a_readable_bag(launch, ros_node, tmp_path):
-    from comper_agent.offline import read_runs
+    from comper_agent.offline.runs import read_runs
     from scaffolding import synthetic_run
     rec = launch("comper_agent", "recorder_node", "--ros-args", "-p", f"output_dir:={tmp_path}/runs",
                  "-p", "run_id:=killed", "-p", "max_file_duration_s:=1.0")
@@ -135,13 +135,13 @@ def test_sigkill_leaves_a_readable_bag(launch, ros_node, tmp_path):
     got = {e.episode_id: e.episode_return for e in runs["killed"].train_episodes()}
     for s in early:
         assert got[s["episode_id"]] == s["episode_return"]
-    assert {e.episode_id for e in __import__("comper_agent.offline", fromlist=["x"]).reconstruct_episodes(
+    assert {e.episode_id for e in __import__("comper_agent.offline.runs", fromlist=["x"]).reconstruct_episodes(
         runs["killed"].transitions)} >= {s["episode_id"] for s in early}
     _run("evaluate", str(bag), "--out", str(tmp_path / "rep"), "--no-plots")
 
 
 def test_sqlite3_storage(launch, ros_node, tmp_path):
-    from comper_agent.offline import read_runs
+    from comper_agent.offline.runs import read_runs
     from scaffolding import synthetic_run
     rec = launch("comper_agent", "recorder_node", "--ros-args", "-p", f"output_dir:={tmp_path}",
                  "-p", "run_id:=sq", "-p", "storage:=sqlite3")
@@ -176,7 +176,7 @@ def test_bag_to_memory_and_export(launch, ros_node, tmp_path, monkeypatch):
     np.testing.assert_array_equal(e0.observations[1:], t.next_states[:k])
     assert e0.terminations[-1] == summ[0]["terminated"] and e0.truncations[-1] == summ[0]["truncated"]
 
-    from comper_agent.recorder_node import _msg_class  # noqa: F401  (package importable)
+    from comper_agent.recording.recorder_node import _msg_class  # noqa: F401  (package importable)
     try:
         import comper_memory.client  # noqa: F401
     except ImportError:
@@ -194,8 +194,8 @@ def test_flow_control_keeps_every_message_of_a_publisher_faster_than_the_recorde
     """RecordingFlow: a publisher that outruns the recorder (1,500 summaries as fast as rclpy publishes)
     waits at the window of unwritten messages instead of overrunning the topics' KEEP_LAST 100. Without
     the waits the same loop left ~100 of the 1,500 in the bag (docs/recording.md)."""
-    from comper_agent.offline import read_runs
-    from comper_agent.recorder_node import RecordingFlow
+    from comper_agent.offline.runs import read_runs
+    from comper_agent.recording.recorder_node import RecordingFlow
     from comper_msgs.msg import EpisodeSummary
     rec = launch("comper_agent", "recorder_node", "--ros-args", "-r", "__node:=flow_recorder",
                  "-p", f"output_dir:={tmp_path}/runs", "-p", "run_id:=flow", "-p", "storage:=sqlite3")
@@ -233,7 +233,7 @@ def test_flow_control_counts_write_offs_and_stops_waiting_at_close(ros_node):
     """RecordingFlow's bookkeeping on real RecorderStatus messages: a timed-out wait writes the backlog
     off (the next wait does not time out again, and their late writes give no extra credit), counts only
     grow, a closed bag ends the waiting."""
-    from comper_agent.recorder_node import RecordingFlow
+    from comper_agent.recording.recorder_node import RecordingFlow
     from comper_msgs.msg import RecorderStatus
     fc = RecordingFlow(ros_node, "/nobody_records", window=3, timeout_s=0.2)
     a, b = "/agent/episodes", "/agent/transitions"

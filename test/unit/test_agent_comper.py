@@ -251,7 +251,7 @@ def test_mlp_q_network_for_vector_observations_and_bad_shapes():
 def test_profiles_name_existing_fields_with_a_source_and_auto_follows_the_task():
     from dataclasses import fields
     from comper_agent.core.config import COMPER_PROFILES, resolve_profile
-    from comper_agent.node_config import ComperNodeConfig
+    from comper_agent.nodes.node_config import ComperNodeConfig
     owner = {**{f.name: ComperNodeConfig for f in fields(ComperNodeConfig)},
              **{f.name: ComperConfig for f in fields(ComperConfig)}}   # a learner or a node parameter
     for profile, values in COMPER_PROFILES.items():

@@ -44,7 +44,7 @@ def test_thesis_values_and_deviations():
 
 def test_comcact_profiles_name_existing_fields_with_a_source_and_thesis_is_the_default():
     from comper_agent.core.config import COMCACT_PROFILES
-    from comper_agent.node_config import ComcactNodeConfig
+    from comper_agent.nodes.node_config import ComcactNodeConfig
     owner = {f.name for f in dataclasses.fields(ComcactConfig)} | {f.name for f in dataclasses.fields(ComcactNodeConfig)}
     assert COMCACT_PROFILES["thesis"] == {} and ComcactNodeConfig().profile == "auto"
     for profile, values in COMCACT_PROFILES.items():
@@ -74,7 +74,7 @@ def test_atari_100k_is_data_efficient_with_the_gated_10_step_targets():
 
 def test_the_start_up_log_names_every_difference_from_the_thesis():
     from comper_agent.core.config import COMCACT_PROFILES, thesis_differences
-    from comper_agent.node_config import ComcactNodeConfig
+    from comper_agent.nodes.node_config import ComcactNodeConfig
     assert thesis_differences(ComcactNodeConfig(), ComcactConfig()) == []
     best = thesis_differences(ComcactNodeConfig(restore_batch=True, runs_root="elsewhere"),
                               ComcactConfig(label_critic="target", qt_step_gate=True, seed=3))

@@ -12,11 +12,11 @@ import time
 
 import pytest
 
-from comper_agent.agent_main import StopRequests, help_text
-from comper_agent.agent_node import AgentRunConfig, episode_over, redefault
-from comper_agent.comcact_node import ComcactNode, ComcactNodeConfig
-from comper_agent.comper_node import ComperNode, ComperNodeConfig
-from comper_agent.supervisor import Supervisor
+from comper_agent.nodes.agent_main import StopRequests, help_text
+from comper_agent.nodes.agent_node import AgentRunConfig, episode_over, redefault
+from comper_agent.nodes.comcact_node import ComcactNode, ComcactNodeConfig
+from comper_agent.nodes.comper_node import ComperNode, ComperNodeConfig
+from comper_agent.tools.supervisor import Supervisor
 from comper_msgs_py.params import ConfigError, config_from_dict, config_to_dict
 
 _COMMON = {"bringup": "embedded", "episode_end": "standard", "runs_root": "runs", "run_id": "", "resume": "",
@@ -101,7 +101,7 @@ def test_help_lists_every_node_and_learner_parameter(node_cls, cfg_cls):
      "profile:=fresh_labels_gate sets COMCACT's value labels and QT step, which ddpg does not have"),
 ])
 def test_a_node_that_cannot_start_says_why_in_one_line_and_exits_1(module, args, message, tmp_path):
-    p = subprocess.run([sys.executable, "-m", f"comper_agent.{module}", "--ros-args", "-p",
+    p = subprocess.run([sys.executable, "-m", f"comper_agent.nodes.{module}", "--ros-args", "-p",
                         f"runs_root:={tmp_path}", *args], capture_output=True, text=True, timeout=120)
     out = (p.stdout + p.stderr).strip()
     assert p.returncode == 1, out
@@ -112,7 +112,7 @@ def test_a_node_that_cannot_start_says_why_in_one_line_and_exits_1(module, args,
 def test_recorder_child_exits_when_its_parent_died_before_prctl():
     """PR_SET_PDEATHSIG's race: a parent that died between fork and prctl sends no signal, so the
     child must notice (parent pid changed) and exit instead of running on unowned."""
-    from comper_agent.recording_link import _die_with_parent
+    from comper_agent.recording.recording_link import _die_with_parent
     cmd = [sys.executable, "-c", "import time; time.sleep(30)"]
     orphan = subprocess.Popen(cmd, preexec_fn=functools.partial(_die_with_parent, os.getpid() + 10_000_000))
     assert orphan.wait(timeout=10) == 1        # "parent" pid differs: exits before exec
@@ -209,7 +209,7 @@ def test_reduce_batch_pace_rule():
 
 
 def test_resume_names_the_parameters_that_differ_from_the_checkpoint():
-    from comper_agent.agent_run import changed_parameters
+    from comper_agent.nodes.agent_run import changed_parameters
     saved = {"params": {"profile": "fresh_labels_gate", "restore_batch": True, "total_steps": 200, "resume": ""},
              "learner": {"qt_step_gate": True, "actor_hidden": [400, 300], "seed": 0}}
     now = {"params": {"profile": "thesis", "restore_batch": False, "total_steps": 300, "resume": "runs/x",

@@ -1,4 +1,4 @@
-"""comper_agent.run_io: run directory, logs, progress line, timers, checkpoints, RNG state."""
+"""comper_agent.nodes.run_io: run directory, logs, progress line, timers, checkpoints, RNG state."""
 import json
 import random
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from comper_agent import run_io
+from comper_agent.nodes import run_io
 
 
 def test_run_dir_config_and_checkpoints_are_atomic_and_weights_only_loadable(tmp_path):

@@ -68,7 +68,7 @@ def test_a_run_stopped_by_a_failed_service_continues_from_its_last_checkpoint_wi
     """The memory node did not answer in time, so the final checkpoint holds weights and counters only
     (run_io.REPLAY_SKIPPED): the bench continues the run (from the older checkpoint that holds the memory)
     instead of refusing it."""
-    from comper_agent import run_io
+    from comper_agent.nodes import run_io
     b = _bench()
     d = tmp_path / "runs" / "failed"
     rd = run_io.RunDir(tmp_path / "runs", "failed")

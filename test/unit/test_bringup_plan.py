@@ -1,12 +1,12 @@
-"""Which processes `ros2 run comper_agent bringup` starts, with which arguments (comper_agent.supervisor.plan):
+"""Which processes `ros2 run comper_agent bringup` starts, with which arguments (comper_agent.tools.supervisor.plan):
 the same nodes as the learner's embedded bring-up, wired by name, each given the parameters its node declares
 (a node refuses the others); the supervision itself is tested in test/integration/test_bringup_supervisor.py."""
 import os
 
 import pytest
 
-from comper_agent.run_io import RunDir, default_run_id
-from comper_agent.supervisor import main, plan
+from comper_agent.nodes.run_io import RunDir, default_run_id
+from comper_agent.tools.supervisor import main, plan
 
 NOW = 1_800_000_000.0          # the time a default run id is named after
 
@@ -104,10 +104,10 @@ def test_the_declared_parameters_are_those_the_nodes_declare():
     import rclpy
     from rclpy.parameter import Parameter
 
-    from comper_agent.comcact_node import ComcactNode
-    from comper_agent.comper_node import ComperNode
-    from comper_agent.qt_trainer_node import QtTrainerNode
-    from comper_agent.bringup_plan import RCLPY_PARAMETERS, learner_config, node_parameters
+    from comper_agent.nodes.comcact_node import ComcactNode
+    from comper_agent.nodes.comper_node import ComperNode
+    from comper_agent.nodes.qt_trainer_node import QtTrainerNode
+    from comper_agent.tools.bringup_plan import RCLPY_PARAMETERS, learner_config, node_parameters
     from comper_memory.memory_node import MemoryNode
     from comper_sim.sim_node import SimNode
     ctx = rclpy.Context()
@@ -209,7 +209,7 @@ def test_launch_file_is_installed_and_takes_its_nodes_from_the_same_plan():
     text = _launch_file().read_text()
     tree = ast.parse(text)
     assert "generate_launch_description" in {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
-    assert "from comper_agent.supervisor import plan" in text
+    assert "from comper_agent.tools.supervisor import plan" in text
 
 
 def test_launch_description_builds_where_launch_ros_exists():

@@ -8,9 +8,9 @@ import shutil
 
 import pytest
 
-from comper_agent import evaluate
+from comper_agent.offline import evaluate
 from scaffolding import synthetic_run
-from comper_agent.recording import ChunkedBagWriter
+from comper_agent.recording.bags import ChunkedBagWriter
 from scaffolding import write_run_bag
 
 
@@ -95,7 +95,7 @@ def test_a_flipped_byte_inside_message_data_is_reported_as_corrupt(tmp_path, cap
     offset = int(err.split(" at byte ")[1].split(":")[0])
     assert offset < at     # the chunk record holding the flipped byte starts before it
     # bag_repair sets the file aside (untouched) and says why; the rest evaluates
-    from comper_agent import bag_tools
+    from comper_agent.recording import bag_tools
     assert bag_tools.bag_repair_main([str(bag)]) == 0
     out = capsys.readouterr().out
     assert f"{f.name} (corrupt chunk at byte {offset}" in out, out
@@ -105,7 +105,7 @@ def test_a_flipped_byte_inside_message_data_is_reported_as_corrupt(tmp_path, cap
 
 
 def test_bag_tools_name_a_damaged_bag_and_bag_repair_main_repairs_it(good_bag, tmp_path, capsys):
-    from comper_agent import bag_tools
+    from comper_agent.recording import bag_tools
     bag = _copy(good_bag, tmp_path)
     last = sorted(bag.glob("*.mcap"))[-1]
     last.write_bytes(last.read_bytes()[:100])

@@ -9,7 +9,7 @@ import pytest
 
 minari = pytest.importorskip("minari")
 
-from comper_agent import bag_tools  # noqa: E402
+from comper_agent.recording import bag_tools  # noqa: E402
 from scaffolding import env_run, write_run_bag, write_run_dir  # noqa: E402
 
 

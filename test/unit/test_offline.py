@@ -7,8 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from comper_agent import offline, value_checks
-from comper_agent.offline import (discounted_returns, final_performance, reconstruct_episodes,
+from comper_agent.offline import runs as offline
+
+from comper_agent.offline import value_checks
+from comper_agent.offline.runs import (discounted_returns, final_performance, reconstruct_episodes,
                                   tercile_summaries)
 from scaffolding import synthetic_run
 from comper_msgs_py.arrays import Transitions

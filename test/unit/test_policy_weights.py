@@ -1,4 +1,4 @@
-"""The policy message (comper_agent.policy_weights) between an async learner and its actors: which
+"""The policy message (comper_agent.nodes.policy_weights) between an async learner and its actors: which
 networks it carries and what an actor loads, with online and with target labels. The message is
 built and read without a running ROS graph."""
 import numpy as np
@@ -6,7 +6,7 @@ import torch
 
 from comper_agent.core.comcact import ComcactLearner
 from comper_agent.core.config import ComcactConfig
-from comper_agent.policy_weights import config_of_policy, load_policy_msg, policy_to_msg
+from comper_agent.nodes.policy_weights import config_of_policy, load_policy_msg, policy_to_msg
 from test_agent_checkpoint import cont_batch as batch
 
 torch.set_num_threads(1)

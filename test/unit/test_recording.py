@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from comper_agent.recording import (ChunkedBagWriter, bag_info, bag_typestore, check_mcap_file, comper_typestore,
+from comper_agent.recording.bags import (ChunkedBagWriter, bag_info, bag_typestore, check_mcap_file, comper_typestore,
                                     make_qos, parse_topic_spec, repair_bag)
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Reader
@@ -127,7 +127,7 @@ def test_embedded_definition_is_complete(tmp_path):
         assert part in text
     # the RIHS01 hash equals the one rosidl generated for the installed interface
     import json
-    from comper_agent.recording import find_msg_dir
+    from comper_agent.recording.bags import find_msg_dir
     hashes = json.loads((find_msg_dir() / "TransitionBatch.json").read_text())["type_hashes"]
     assert c.digest == next(h["hash_string"] for h in hashes if h["type_name"] == TB)
 

@@ -1,4 +1,4 @@
-"""The pure pieces of the ros2 stand-in's inspection verbs (comper_msgs_py.cli): message printing
+"""The pure pieces of the ros2 stand-in's inspection verbs (comper_agent.tools.ros2_cli): message printing
 through rosidl introspection, parameter nesting, rate statistics, QoS choice, interface texts.
 No ROS graph (the verbs against running nodes: test/integration/test_standin_cli.py)."""
 import array
@@ -6,7 +6,7 @@ import array
 import pytest
 import yaml
 
-from comper_msgs_py import cli
+from comper_agent.tools import ros2_cli as cli
 
 
 def test_hidden_names_follow_ros2cli():

@@ -1,7 +1,7 @@
-"""The stand-in's wait for discovery (comper_msgs_py.cli.wait_until_stable): a list is taken once the graph has
+"""The stand-in's wait for discovery (comper_agent.tools.ros2_cli.wait_until_stable): a list is taken once the graph has
 not changed for the quiet spell and every endpoint's node is known, within a bound. The graph here is a script
 of what discovery shows over time, on a clock that the spins advance."""
-from comper_msgs_py.cli import wait_until_stable
+from comper_agent.tools.ros2_cli import wait_until_stable
 
 
 class Discovery:

@@ -60,9 +60,9 @@ def _rel(path: Path) -> str:
 
 def test_the_rules_see_the_whole_source_tree():
     names = {_rel(p) for p in modules()}
-    assert "comper_agent/comper_agent/agent_node.py" in names and "comper_memory/comper_memory/core/memory.py" in names
+    assert "comper_agent/comper_agent/nodes/agent_node.py" in names and "comper_memory/comper_memory/core/memory.py" in names
     assert len(names) > 50
-    counts = method_counts(SRC / "comper_agent/comper_agent/agent_node.py")
+    counts = method_counts(SRC / "comper_agent/comper_agent/nodes/agent_node.py")
     assert 10 < counts["AgentNode"] <= MAX_METHODS
 
 

@@ -6,7 +6,7 @@ on PyPI; without them use ``ros2 run comper_agent bringup``, which starts the sa
     ros2 launch comper_agent suite.launch.py env_id:=Hopper-v4 total_steps:=50000 seed:=1
     ros2 launch comper_agent suite.launch.py params_file:=src/comper_agent/config/comcact.yaml
 
-Which nodes, with which arguments, is decided by :func:`comper_agent.supervisor.plan`, the same as the
+Which nodes, with which arguments, is decided by :func:`comper_agent.tools.supervisor.plan`, the same as the
 bring-up executable: sim_node, memory_node and qt_trainer_node as the learner variant needs them, then the
 learner with ``bringup:=external``. Each node's output is prefixed with its name by launch; Ctrl-C reaches
 every node; when any node exits, the launch shuts the others down.
@@ -27,7 +27,7 @@ ARGUMENTS = {
 
 
 def _nodes(context):
-    from comper_agent.supervisor import plan
+    from comper_agent.tools.supervisor import plan
     value = {k: LaunchConfiguration(k).perform(context) for k in ARGUMENTS}
     ros_args = ["--params-file", value["params_file"]] if value["params_file"] else []
     for key in ("env_id", "algorithm", "total_steps", "seed"):

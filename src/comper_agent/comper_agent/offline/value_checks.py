@@ -14,7 +14,7 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-from .offline import discounted_returns, reconstruct_episodes
+from comper_agent.offline.runs import discounted_returns, reconstruct_episodes
 
 __all__ = ["Policy", "load_policy", "q_vs_mc", "fitted_q_evaluation"]
 
@@ -52,8 +52,8 @@ def load_policy(path: str | os.PathLike) -> Policy:
     COMCACT / DDPG: {"learner": {"actor": ..., "critic": ...}} (or the learner dict itself);
     COMPER / DQN: {"learner": {"q": NatureCNN state}}.
     """
-    from .core.checkpoint import load_checkpoint
-    from .core.networks import Actor, Critic, NatureCNN
+    from comper_agent.core.checkpoint import load_checkpoint
+    from comper_agent.core.networks import Actor, Critic, NatureCNN
 
     state = load_checkpoint(path)
     learner = state.get("learner", state)

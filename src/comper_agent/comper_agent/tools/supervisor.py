@@ -15,7 +15,7 @@ Parameters: each ``-p`` (and each ``--params-file`` value) goes to the processes
 the embedded bring-up gives the command line to every node and each takes what it declares (``-p env_id:=...``
 reaches the sim and the learner, ``-p delta:=...`` the memory); a name no node declares is refused before
 anything starts; ``-r __node:=...`` renames the learner only; other arguments go to every process
-(:mod:`.bringup_plan`). The supervisor adds the wiring: each node's name, the run id (sim and learner) and the
+(:mod:`comper_agent.tools.bringup_plan`). The supervisor adds the wiring: each node's name, the run id (sim and learner) and the
 memory node's ``snapshot_root`` (the run's checkpoints folder: checkpoints hold the memory, and a resume
 continues with it, as in the embedded bring-up), the sim's ``env_id`` (the learner's, default included: the
 sim node's own default is another task), the QT trainer's ``memory_node`` (and ``architecture:=comper`` for
@@ -35,7 +35,7 @@ node's code, 128 + signal for a node killed by a signal, 1 for a server that exi
 that does not stop within ``--stop-timeout`` seconds of SIGINT gets SIGTERM, then SIGKILL. If the supervisor
 itself dies (even by SIGKILL), every child gets SIGTERM from the kernel (PR_SET_PDEATHSIG) and stops.
 
-The pure part (which processes, with which arguments: :func:`plan`, :mod:`.bringup_plan`) is unit-tested; the
+The pure part (which processes, with which arguments: :func:`plan`, :mod:`comper_agent.tools.bringup_plan`) is unit-tested; the
 supervision by test/integration/test_bringup_supervisor.py.
 """
 from __future__ import annotations
@@ -49,7 +49,7 @@ import sys
 import threading
 import time
 
-from .bringup_plan import LEARNERS, ProcSpec, plan
+from comper_agent.tools.bringup_plan import LEARNERS, ProcSpec, plan
 
 __all__ = ["Supervisor", "plan", "main"]       # plan: also what the launch file imports from here
 
@@ -102,7 +102,7 @@ class Supervisor:
         self.wake.set()
 
     def start(self, spec: ProcSpec) -> None:
-        from .recording_link import _die_with_parent
+        from comper_agent.recording.recording_link import _die_with_parent
         cmd = spec.command(_executable_path(spec))
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         # a session of its own: a terminal's Ctrl-C reaches the supervisor only, which forwards it once;

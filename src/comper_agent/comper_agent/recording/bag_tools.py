@@ -17,7 +17,7 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-from . import offline
+from comper_agent.offline import runs as offline
 
 __all__ = ["bag_to_memory_main", "export_dataset_main", "export_minari", "default_dataset_id", "iter_batches",
            "load_transitions", "bag_repair_main"]
@@ -25,7 +25,7 @@ __all__ = ["bag_to_memory_main", "export_dataset_main", "export_minari", "defaul
 
 def _read_runs(paths):
     """offline.read_runs, with an unreadable bag reported as one line naming it and the repair."""
-    from .evaluate import _check_readable
+    from comper_agent.offline.evaluate import _check_readable
     try:
         return offline.read_runs(paths)
     except Exception:  # noqa: BLE001 - name the bag and what to run, else the original error
@@ -309,8 +309,8 @@ def export_dataset_main(argv=None) -> int:
 
 # --------------------------------------------------------------------------------------------
 def bag_repair_main(argv=None) -> int:
-    """Rebuild the metadata.yaml of bags whose recorder was killed (comper_agent.recording.repair_bag)."""
-    from .evaluate import repair_command
+    """Rebuild the metadata.yaml of bags whose recorder was killed (comper_agent.recording.bags.repair_bag)."""
+    from comper_agent.offline.evaluate import repair_command
     p = argparse.ArgumentParser(
         prog="bag_repair",
         description="Rebuild each bag's metadata.yaml from its complete storage files; a partial file (the one "

@@ -1,5 +1,5 @@
 """Which processes ``ros2 run comper_agent bringup`` (and the launch file) starts, with which arguments: the pure
-part of the bring-up, unit-tested in test/unit/test_bringup_plan.py; the supervision is :mod:`.supervisor`.
+part of the bring-up, unit-tested in test/unit/test_bringup_plan.py; the supervision is :mod:`comper_agent.tools.supervisor`.
 
 * :func:`plan` - the processes for a learner and the user's ``--ros-args``: ``sim_node``, ``memory_node`` and
   ``qt_trainer_node`` as the variant uses them, the learner last with ``bringup:=external``, wired by name.
@@ -146,11 +146,11 @@ def node_parameters(executable: str, *, algorithm: str = "", architecture: str =
         from comper_memory.memory_node import MemoryNodeConfig
         classes = [MemoryConfig, MemoryNodeConfig]
     elif executable == "qt_trainer_node":
-        from .core.config import QT_CONFIGS
-        from .node_config import QtTrainerNodeConfig
+        from comper_agent.core.config import QT_CONFIGS
+        from comper_agent.nodes.node_config import QtTrainerNodeConfig
         classes = [QtTrainerNodeConfig, QT_CONFIGS[architecture]]
     else:
-        from . import node_config
+        from comper_agent.nodes import node_config
         classes = [node_config.ComcactNodeConfig if executable == "comcact_node" else node_config.ComperNodeConfig,
                    learner_config(algorithm)]
     return RCLPY_PARAMETERS | {f.name for c in classes for f in dataclasses.fields(c)}
@@ -159,7 +159,7 @@ def node_parameters(executable: str, *, algorithm: str = "", architecture: str =
 def learner_config(algorithm: str):
     """The learner's hyper-parameter class of `algorithm` (the learner nodes' LEARNER_CONFIGS, without importing
     them: they import torch)."""
-    from .core import config
+    from comper_agent.core import config
     return {"comcact": config.ComcactConfig, "ddpg": config.DDPGConfig, "comper": config.ComperConfig,
             "comper_f": config.ComperConfig, "comper_m": config.ComperConfig, "dqn": config.DQNConfig}[algorithm]
 
@@ -272,7 +272,7 @@ def run_plan(learner: str, algorithm: str, env_id: str, values: dict, *, now: fl
     """The run the learner will write: ``-p run_id`` (default ``<algorithm>-<env>-s<seed>-<time>`` at `now`) under
     ``-p runs_root``, or on ``-p resume`` the checkpoint's run (as the learner resolves it: run_io.resume_checkpoint)
     and the memory snapshot it names. ValueError when the checkpoint cannot be read."""
-    from .run_io import default_run_id
+    from comper_agent.nodes.run_io import default_run_id
     resume = str(values.get("resume", "") or "")
     if not resume:
         seed = int(values.get("seed", _learner_default(learner, "seed", learning=True)))
@@ -280,7 +280,7 @@ def run_plan(learner: str, algorithm: str, env_id: str, values: dict, *, now: fl
         path = os.path.abspath(os.path.join(str(values.get("runs_root", _learner_default(learner, "runs_root"))),
                                             run_id))
         return RunPlan(run_id, path, snapshot_root=os.path.join(path, "checkpoints"))
-    from .run_io import resume_checkpoint
+    from comper_agent.nodes.run_io import resume_checkpoint
     try:
         ck, state, _ = resume_checkpoint(resume)
         run_id = str(state["run"]["run_id"])
@@ -301,10 +301,10 @@ def _learner_default(learner: str, name: str, *, learning: bool = False):
     """The default of a node parameter of the learner (`learning`: of a learning parameter, e.g. seed)."""
     import dataclasses
     if learning:
-        from .core.config import ComcactConfig, ComperConfig
+        from comper_agent.core.config import ComcactConfig, ComperConfig
         cls = ComcactConfig if learner == "comcact_node" else ComperConfig
     else:
-        from .node_config import ComcactNodeConfig, ComperNodeConfig
+        from comper_agent.nodes.node_config import ComcactNodeConfig, ComperNodeConfig
         cls = ComcactNodeConfig if learner == "comcact_node" else ComperNodeConfig
     (f,) = [f for f in dataclasses.fields(cls) if f.name == name]
     return f.default

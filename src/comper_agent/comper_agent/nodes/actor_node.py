@@ -31,11 +31,11 @@ from comper_msgs_py.ros_params import declare_config, refuse_undeclared
 from comper_msgs_py.qos import HAND_OVER_S, RECORDED_QOS as SUMMARY_QOS, wait_acknowledged
 from comper_msgs_py.service_client import ServiceError, ServiceTimeout
 
-from .agent_main import run_main
-from .bringup import START_HINTS, Spinner
-from .core.memory_schedule import Row, rows_to_transitions
-from .node_config import ActorNodeConfig
-from .policy_weights import POLICY_QOS, config_of_policy, load_policy_msg
+from comper_agent.nodes.agent_main import run_main
+from comper_agent.nodes.bringup import START_HINTS, Spinner
+from comper_agent.core.memory_schedule import Row, rows_to_transitions
+from comper_agent.nodes.node_config import ActorNodeConfig
+from comper_agent.nodes.policy_weights import POLICY_QOS, config_of_policy, load_policy_msg
 
 __all__ = ["ActorNode", "ActorNodeConfig", "ActorFleet", "rate_limit_params", "main"]
 
@@ -112,9 +112,9 @@ class ActorNode(Node):
 
     def _setup(self) -> None:
         from comper_sim.core import SimBridge, SimConfig
-        from .core.comcact import ComcactLearner
-        from .core.config import ComcactConfig, DDPGConfig
-        from .core.networks import configure_torch
+        from comper_agent.core.comcact import ComcactLearner
+        from comper_agent.core.config import ComcactConfig, DDPGConfig
+        from comper_agent.core.networks import configure_torch
         p = self.p
         self._wait(f"the memory node {p.memory_node!r} (start it with: "
                    f"{START_HINTS['memory'].format(name=p.memory_node)})",
@@ -275,7 +275,7 @@ class ActorFleet:
         import subprocess
         from pathlib import Path
 
-        from .recording_link import _die_with_parent
+        from comper_agent.recording.recording_link import _die_with_parent
         self.procs, self.logs = [], []
         ros2 = shutil.which("ros2") or "ros2"
         for i in range(num_actors):

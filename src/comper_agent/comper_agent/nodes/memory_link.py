@@ -19,8 +19,8 @@ from comper_msgs.msg import QTModel as QTModelMsg
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.service_client import PendingCall
 
-from .core.memory_schedule import batches_per_sample
-from .qt_trainer_node import QT_MODEL_QOS, msg_to_qt
+from comper_agent.core.memory_schedule import batches_per_sample
+from comper_agent.nodes.qt_trainer_node import QT_MODEL_QOS, msg_to_qt
 
 __all__ = ["MemoryLink"]
 

@@ -8,7 +8,7 @@
 * :func:`final_performance`, :func:`tercile_summaries`, :func:`run_summary`, :func:`group_summaries`:
   the thesis's summaries (method.md section 5).
 * :func:`discounted_returns`; :func:`q_vs_mc`, :func:`fitted_q_evaluation`, :func:`load_policy`
-  (in :mod:`comper_agent.value_checks`): the checkpoint's value estimates against what the logged
+  (in :mod:`comper_agent.offline.value_checks`): the checkpoint's value estimates against what the logged
   episodes actually returned.
 """
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-from .core.protocol import final_performance, last_n_rule, tercile_summaries
+from comper_agent.core.protocol import final_performance, last_n_rule, tercile_summaries
 
 __all__ = [
     "EpisodeRecord", "EvalPoint", "RunData", "Episode", "find_bags", "read_runs",
@@ -128,7 +128,7 @@ def read_runs(paths, *, load_transitions: bool = True) -> dict[str, RunData]:
     """
     from rosbags.rosbag2 import Reader
 
-    from .recording import bag_info, bag_typestore
+    from comper_agent.recording.bags import bag_info, bag_typestore
 
     runs: dict[str, RunData] = {}
     parts: dict[str, list] = {}

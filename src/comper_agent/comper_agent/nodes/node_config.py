@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from comper_msgs_py.params import param
 from comper_sim.core import EPISODE_END_RULES
-from .core.config import COMCACT_PROFILES
+from comper_agent.core.config import COMCACT_PROFILES
 
 __all__ = ["AgentRunConfig", "ComperNodeConfig", "ComcactNodeConfig", "QtTrainerNodeConfig", "ActorNodeConfig",
            "redefault",

@@ -109,7 +109,7 @@ class ExperienceCheckpoint:
         replay = getattr(node, "replay", None)
         if replay is None:
             return None
-        from .core.checkpoint import save_arrays
+        from comper_agent.core.checkpoint import save_arrays
         f = save_arrays(node.run_dir.replay_path(step, "local"), replay.state_arrays())
         return {"kind": "local", "file": f.name, "transitions": len(replay)}
 
@@ -147,7 +147,7 @@ class ExperienceCheckpoint:
             node.log.info(f"memory restored from {path}: {st['identities']} identities, TM sets {st['tm_sets']}, "
                           f"RTM {st['rtm_size']}")
         elif saved["kind"] == "local" and replay is not None:
-            from .core.checkpoint import load_arrays
+            from comper_agent.core.checkpoint import load_arrays
             f = node.outputs.resume_path.parent / saved["file"]
             try:
                 replay.load_state_arrays(load_arrays(f))

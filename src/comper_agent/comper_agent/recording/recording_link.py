@@ -46,13 +46,13 @@ class RecordingLink:
         if p.record_process == "in_process":
             from rclpy.parameter import Parameter
 
-            from .recorder_node import RecorderNode
+            from comper_agent.recording.recorder_node import RecorderNode
             self.recorder = RecorderNode(context=node.context, parameter_overrides=[
                 Parameter(k, value=v) for k, v in params.items()])
             self.name = self.recorder.get_fully_qualified_name()
         else:
             self._start_process(params)
-        from .recorder_node import RecordingFlow
+        from comper_agent.recording.recorder_node import RecordingFlow
         self.flow = RecordingFlow(node, self.name, window=p.record_window, timeout_s=p.record_wait_s)
 
     @property
@@ -63,7 +63,7 @@ class RecordingLink:
     def _start_process(self, params: dict) -> None:
         self._subscribers_before = {t: self.node.count_subscribers(t) for t in self.topics}
         self.name = f"/{self.node.get_name()}_recorder"     # no namespace given: at the root
-        cmd = [sys.executable, "-m", "comper_agent.recorder_node", "--ros-args", "-r", f"__node:={self.name[1:]}"]
+        cmd = [sys.executable, "-m", "comper_agent.recording.recorder_node", "--ros-args", "-r", f"__node:={self.name[1:]}"]
         for k, v in params.items():
             cmd += ["-p", f"{k}:={json.dumps(v)}"]   # JSON is YAML: strings stay strings, lists lists
         self.log_path = self.run_dir.file("recorder.log")

@@ -37,8 +37,8 @@ from comper_msgs_py.qos import SERVICE_QOS
 from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 from comper_msgs_py.service_client import ServiceError
-from .core.config import QT_CONFIGS
-from .node_config import QtTrainerNodeConfig
+from comper_agent.core.config import QT_CONFIGS
+from comper_agent.nodes.node_config import QtTrainerNodeConfig
 
 __all__ = ["QtTrainerNode", "QT_MODEL_QOS", "qt_to_msg", "msg_to_qt", "main"]
 
@@ -71,7 +71,7 @@ def qt_to_msg(arrays: dict, out: QTModelMsg | None = None) -> QTModelMsg:
 
 def msg_to_qt(msg: QTModelMsg, device: str | None = "cpu"):
     """comper_msgs/QTModel -> a predicting :class:`comper_agent.core.qt.QTModel`."""
-    from .core.qt import QTModel
+    from comper_agent.core.qt import QTModel
     tensors = {n: np.array(array_to_numpy(a), dtype=np.float32) for n, a in zip(msg.tensor_names, msg.tensors)}
     return QTModel.from_arrays(
         architecture=msg.architecture, config=json.loads(msg.config_json), key_size=int(msg.key_size),
@@ -99,7 +99,7 @@ class QtTrainerNode(Node):
 
         from comper_memory.core import transition_keys
 
-        from .core.qt import QTModel
+        from comper_agent.core.qt import QTModel
         self.key_fn = transition_keys
         self.qt = QTModel(self.qt_config)
         self._lock = threading.Lock()      # one reduction at a time
@@ -145,7 +145,7 @@ class QtTrainerNode(Node):
     # --------------------------------------------------------------------------- reduction
     def reduce(self, max_sets: int = 0, epochs: int = 0) -> dict:
         """One whole reduction; returns the Reduce response fields. Raises ServiceError."""
-        from .core.qt import reduction_predictor
+        from comper_agent.core.qt import reduction_predictor
         with self._lock:
             t0 = time.monotonic()
             if not self.memory.ready() and not self.memory.wait_for_service(5.0):
@@ -236,7 +236,7 @@ class QtTrainerNode(Node):
 def main(args=None) -> int:
     """Entry point of ``ros2 run comper_agent qt_trainer_node``: 0 on Ctrl-C, 1 when it cannot start.
     Multi-threaded: the reduce service waits on nested calls to the memory node."""
-    from .core.networks import configure_torch
+    from comper_agent.core.networks import configure_torch
     return serve_node(QtTrainerNode, "qt_trainer_node", args,
                       on_ready=lambda node: configure_torch(node.p.num_threads or 1))
 

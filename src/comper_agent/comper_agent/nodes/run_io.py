@@ -51,7 +51,7 @@ def format_duration(seconds: float) -> str:
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    from .core.checkpoint import write_atomic
+    from comper_agent.core.checkpoint import write_atomic
     return write_atomic(path, lambda f: f.write(text.encode("utf-8")))
 
 
@@ -113,7 +113,7 @@ class RunDir:
         (and their replay contents, :meth:`replay_path`), and the newest step file whose replay contents
         are beside it, so that a run whose last checkpoints could not save them (:data:`REPLAY_SKIPPED`)
         keeps one to resume from."""
-        from .core.checkpoint import save_checkpoint
+        from comper_agent.core.checkpoint import save_checkpoint
         path = save_checkpoint(self.checkpoint_path(step), state)
         save_checkpoint(self.checkpoints / "latest.pt", state)
         if keep_last > 0:
@@ -142,7 +142,7 @@ def resume_checkpoint(path: str | os.PathLike) -> tuple[Path, dict, str | None]:
     it: the newest such one, so that the weights and the memory / replay contents the run continues with are
     from the same step (the steps after it are run again); `note` then says so. A file given by name is
     loaded as it is."""
-    from .core.checkpoint import load_checkpoint
+    from comper_agent.core.checkpoint import load_checkpoint
     ck = resolve_checkpoint(path)
     state = load_checkpoint(ck)
     if Path(path).expanduser().is_file() or REPLAY_SKIPPED not in state:

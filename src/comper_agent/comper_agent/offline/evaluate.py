@@ -15,7 +15,7 @@ agent printed), cross-checked against the returns summed from the recorded trans
 A bag that cannot be read (truncated by a killed recorder, no metadata.yaml, a damaged file) or
 that holds no episodes is reported in one line naming the bag and what to run; ``--repair``
 first rebuilds each bag's metadata.yaml from its complete storage files
-(``comper_agent.recording.repair_bag``: a partial file is moved to ``<bag>/.open/``, untouched),
+(``comper_agent.recording.bags.repair_bag``: a partial file is moved to ``<bag>/.open/``, untouched),
 then evaluates. ``--repair`` with ``--out -`` only repairs.
 """
 from __future__ import annotations
@@ -31,7 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import offline, value_checks
+from comper_agent.offline import runs as offline
+
+from comper_agent.offline import value_checks
 
 __all__ = ["main", "evaluate"]
 
@@ -236,7 +238,7 @@ def _repair_hint(bag) -> str:
 
 def repair(paths) -> list[dict]:
     """repair_bag on every bag directory under paths; one result dict per bag (with 'bag')."""
-    from .recording import repair_bag
+    from comper_agent.recording.bags import repair_bag
     dirs = _storage_dirs(paths)
     if not dirs:
         raise BagError(f"no rosbag2 storage files (.mcap, .db3) under {', '.join(map(str, paths))}")
@@ -245,7 +247,7 @@ def repair(paths) -> list[dict]:
 
 def _corrupt_file(bag: Path):
     """The first MCAP file of `bag` whose chunk CRC check fails (bytes changed inside it), else None."""
-    from .recording import check_mcap_file
+    from comper_agent.recording.bags import check_mcap_file
     for f in sorted(bag.glob("*.mcap")):
         chk = check_mcap_file(f)
         if chk.damage == "crc":
@@ -307,7 +309,7 @@ def evaluate(paths, out, *, checkpoint=None, gamma: float = 0.99, fqe_updates: i
     groups = offline.group_summaries(summaries)
     q_results = {}
     if checkpoint:
-        from .core.networks import configure_torch
+        from comper_agent.core.networks import configure_torch
         configure_torch(threads)   # small networks: one thread is fastest, and robust on a busy machine
         policy = value_checks.load_policy(checkpoint)
         for rid, r in sorted(runs.items()):

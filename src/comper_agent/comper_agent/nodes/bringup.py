@@ -112,7 +112,7 @@ def make_embedded_nodes(context, *, sim_name: str, sim_params: dict, memory_name
                                     parameter_overrides=_overrides(memory_params or {}))
             out.all.append(out.memory)
         if qt_name:
-            from .qt_trainer_node import QtTrainerNode
+            from comper_agent.nodes.qt_trainer_node import QtTrainerNode
             out.qt_trainer = QtTrainerNode(qt_name, context=context,
                                            parameter_overrides=_overrides(qt_params or {}))
             out.all.append(out.qt_trainer)

@@ -1,16 +1,16 @@
 """agent_node: what the learner nodes (comcact_node, comper_node) share.
 
 :class:`AgentNode` - the learner node's lifecycle: parameters (``node_config``, ``declare_config``,
-profiles), the embedded bring-up (:mod:`comper_agent.bringup`), the service clients, the run
+profiles), the embedded bring-up (:mod:`comper_agent.nodes.bringup`), the service clients, the run
 (start, loop, stop, final save, time split), the checkpoint's contents and shutdown. A subclass
 supplies the algorithm through the hooks below (``_setup_learner``, ``_loop``, ``_start_line``,
 ``_progress_line``, ...). The parts that hold state of their own are collaborators:
-the run's outputs (:class:`~comper_agent.agent_run.AgentRun`), the experience saved with its checkpoints
-(:class:`~comper_agent.experience_checkpoint.ExperienceCheckpoint`), the training episodes and the
-recorded topics (:mod:`comper_agent.episodes`), evaluation (:mod:`comper_agent.evaluation`, opened
-by the subclass with its policy), the memory link (:class:`~comper_agent.memory_link.MemoryLink`)
-and the recording link (:class:`~comper_agent.recording_link.RecordingLink`). The entry point is
-:mod:`comper_agent.agent_main`.
+the run's outputs (:class:`~comper_agent.nodes.agent_run.AgentRun`), the experience saved with its checkpoints
+(:class:`~comper_agent.nodes.experience_checkpoint.ExperienceCheckpoint`), the training episodes and the
+recorded topics (:mod:`comper_agent.nodes.episodes`), evaluation (:mod:`comper_agent.nodes.evaluation`, opened
+by the subclass with its policy), the memory link (:class:`~comper_agent.nodes.memory_link.MemoryLink`)
+and the recording link (:class:`~comper_agent.recording.recording_link.RecordingLink`). The entry point is
+:mod:`comper_agent.nodes.agent_main`.
 """
 from __future__ import annotations
 
@@ -29,17 +29,17 @@ from comper_msgs_py.service_client import ServiceError, wait_for_services
 from comper_sim.client import SimClient
 from comper_sim.core import episode_over
 
-from . import run_io
-from .agent_main import run_main
-from .agent_run import AgentRun, changed_parameters
-from .bringup import START_HINTS, Spinner, make_embedded_nodes
-from .episodes import SUMMARY_QOS, LearnerTopics, TrainingEpisodes
-from .experience_checkpoint import ExperienceCheckpoint
-from .recording_link import RecordingLink, record_topics
-from .memory_link import MemoryLink
-from .core.config import thesis_differences
-from .node_config import AgentRunConfig, redefault
-from .qt_diagnostics import QTDiagnostics
+from comper_agent.nodes import run_io
+from comper_agent.nodes.agent_main import run_main
+from comper_agent.nodes.agent_run import AgentRun, changed_parameters
+from comper_agent.nodes.bringup import START_HINTS, Spinner, make_embedded_nodes
+from comper_agent.nodes.episodes import SUMMARY_QOS, LearnerTopics, TrainingEpisodes
+from comper_agent.nodes.experience_checkpoint import ExperienceCheckpoint
+from comper_agent.recording.recording_link import RecordingLink, record_topics
+from comper_agent.nodes.memory_link import MemoryLink
+from comper_agent.core.config import thesis_differences
+from comper_agent.nodes.node_config import AgentRunConfig, redefault
+from comper_agent.nodes.qt_diagnostics import QTDiagnostics
 
 __all__ = ["AgentNode", "AgentRunConfig", "run_main", "redefault", "episode_over", "SUMMARY_QOS"]
 

@@ -4,13 +4,13 @@
     ros2 run comper_agent recorder_node --ros-args --params-file src/comper_agent/config/recorder.yaml
 
 Subscriptions use rclpy's serialized path (``raw=True``): the CDR bytes go straight into the bag,
-nothing is deserialised. The bag is written by :class:`comper_agent.recording.ChunkedBagWriter`
+nothing is deserialised. The bag is written by :class:`comper_agent.recording.bags.ChunkedBagWriter`
 (MCAP by default, sqlite3 as an option, zstd-compressed by default, split files closed every
 ``max_file_duration_s``), so a SIGKILL loses at most the last few seconds. See docs/recording.md.
 
 In-process use (an agent node with a ``record`` parameter)::
 
-    from comper_agent.recorder_node import RecorderNode
+    from comper_agent.recording.recorder_node import RecorderNode
     recorder = RecorderNode(context=self.context, parameter_overrides=[
         Parameter("run_id", value=run_id), Parameter("algorithm", value="comcact"),
         Parameter("topics", value=[f"/{self.get_name()}/transitions", ...])])
@@ -38,7 +38,7 @@ from comper_msgs_py.qos import RECORDED_QOS
 from comper_msgs_py.ros_main import serve_node
 from comper_msgs_py.ros_params import declare_config
 
-from .recording import (ChunkedBagWriter, RecorderConfig, comper_typestore, make_qos,
+from comper_agent.recording.bags import (ChunkedBagWriter, RecorderConfig, comper_typestore, make_qos,
                         parse_topic_spec)
 
 __all__ = ["RecorderNode", "RecordingFlow", "EPISODE_QOS", "STATUS_QOS", "main",

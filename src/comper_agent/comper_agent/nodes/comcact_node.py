@@ -17,7 +17,7 @@ loop runs in the main thread and talks to them only through ROS services and top
 Command-line parameters reach every embedded node that declares them (``-p delta:=1e-3`` sets the
 memory's threshold; ``-p seed:=1`` seeds simulation and learner). The machinery shared with
 comper_node (parameters, run directory, bring-up, recording, checkpoints, time split, Ctrl-C) is
-:mod:`comper_agent.agent_node`.
+:mod:`comper_agent.nodes.agent_node`.
 
 One agent step (COMCACT): act with OU noise (per action dimension, reset each episode), clipped to
 the bounds -> ``<sim>/step`` -> store the transition with its value label in the memory ->
@@ -34,7 +34,7 @@ environment" of the protocol), published on ``~/evaluations`` (EvaluationResult)
 by its transitions on ``~/transitions``).
 
 Outputs in ``<runs_root>/<run_id>/``: config.yaml, metrics.jsonl, progress.csv, tb/ (TensorBoard),
-checkpoints/ (see :mod:`comper_agent.run_io`). Ctrl-C stops after the current step, saves a final
+checkpoints/ (see :mod:`comper_agent.nodes.run_io`). Ctrl-C stops after the current step, saves a final
 checkpoint and flushes the logs (a second Ctrl-C aborts).
 
 Size: one node runs COMCACT and the DDPG baseline, each in lock step and in async mode; they share
@@ -51,14 +51,14 @@ import numpy as np
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.convert import seq_to_numpy
 
-from .actor_node import ActorFleet, rate_limit_params
-from .agent_run import next_due, resume_text
-from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
-from .evaluation import Evaluation
-from .node_config import ComcactNodeConfig
-from .core.config import COMCACT_PROFILES, ComcactConfig, DDPGConfig, resolve_comcact_profile
-from .core.memory_schedule import Row, reduce_due, rows_to_transitions, updates_before_reduce
-from .policy_weights import PolicyPublisher
+from comper_agent.nodes.actor_node import ActorFleet, rate_limit_params
+from comper_agent.nodes.agent_run import next_due, resume_text
+from comper_agent.nodes.agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
+from comper_agent.nodes.evaluation import Evaluation
+from comper_agent.nodes.node_config import ComcactNodeConfig
+from comper_agent.core.config import COMCACT_PROFILES, ComcactConfig, DDPGConfig, resolve_comcact_profile
+from comper_agent.core.memory_schedule import Row, reduce_due, rows_to_transitions, updates_before_reduce
+from comper_agent.nodes.policy_weights import PolicyPublisher
 
 __all__ = ["ComcactNode", "ComcactNodeConfig", "main", "SUMMARY_QOS"]
 
@@ -104,9 +104,9 @@ class ComcactNode(AgentNode):
 
     # ------------------------------------------------------------------------------ setup / state
     def _setup_learner(self) -> None:
-        from .core.comcact import ComcactLearner
-        from .core.networks import configure_torch
-        from .core.replay import ReplayBuffer
+        from comper_agent.core.comcact import ComcactLearner
+        from comper_agent.core.networks import configure_torch
+        from comper_agent.core.replay import ReplayBuffer
         configure_torch(self.cfg.num_threads)
         obs_dim = int(np.prod(self.obs_shape))
         self.learner = ComcactLearner(self.cfg, obs_dim, self.low, self.high)

@@ -1,7 +1,7 @@
 """AgentRun: one learner run's outputs, with no ROS in it: the run directory (fresh, or the
 checkpoint's on resume), its logs (metrics.jsonl, progress.csv, TensorBoard scalars, console
 progress), checkpoints when due, the wall clock across resumes, and the time split at the end.
-Files and formats: :mod:`comper_agent.run_io`.
+Files and formats: :mod:`comper_agent.nodes.run_io`.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from typing import Callable
 
 from comper_msgs_py.service_client import ServiceError
 
-from . import run_io
+from comper_agent.nodes import run_io
 
 __all__ = ["AgentRun", "next_due", "resume_text", "changed_parameters"]
 

@@ -10,15 +10,15 @@ chapter-7 ablations COMPER-F and COMPER-M, and the DQN baseline (Table 35).
     ros2 run comper_agent comper_node --ros-args --params-file src/comper_agent/config/comper.yaml
     ros2 run comper_agent comper_node --help                            # every parameter
 
-Bring-up (:mod:`comper_agent.bringup`): ``embedded`` (default) builds the simulation, memory and
+Bring-up (:mod:`comper_agent.nodes.bringup`): ``embedded`` (default) builds the simulation, memory and
 QT trainer nodes in this process (separate node objects, each on its own executor thread);
-``external`` uses nodes started with ``ros2 run`` by name. Outputs (:mod:`comper_agent.run_io`):
+``external`` uses nodes started with ``ros2 run`` by name. Outputs (:mod:`comper_agent.nodes.run_io`):
 ``<runs_root>/<run_id>/`` config.yaml, metrics.jsonl, progress.csv, tb/, checkpoints/, and
 summary.json (the protocol's figures, :mod:`comper_agent.core.protocol`: mean of the last 10
 training episodes, or 3 for runs with fewer than 25 episodes, and the mean of the last 5 (or 3)
 episodes by the end of each third of the frame budget). The machinery shared with comcact_node
 (run directory, bring-up, memory and recording links, checkpoints, time split, Ctrl-C) is
-:mod:`comper_agent.agent_node` and the modules it names.
+:mod:`comper_agent.nodes.agent_node` and the modules it names.
 
 Size: one node runs four variants (comper, comper_f, comper_m, dqn) on two kinds of tasks (ALE
 frames with a frame replay, vector observations with an MLP); splitting them would repeat the
@@ -61,16 +61,16 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-from . import run_io
-from .agent_run import next_due, resume_text
-from .agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
-from .evaluation import Evaluation
-from .node_config import COMPER_ALGORITHMS, ComperNodeConfig
-from .core.memory_schedule import (NStepWindows, PendingRows, Row, reduce_due, rows_to_transitions,
+from comper_agent.nodes import run_io
+from comper_agent.nodes.agent_run import next_due, resume_text
+from comper_agent.nodes.agent_node import SUMMARY_QOS, AgentNode, episode_over, run_main
+from comper_agent.nodes.evaluation import Evaluation
+from comper_agent.nodes.node_config import COMPER_ALGORITHMS, ComperNodeConfig
+from comper_agent.core.memory_schedule import (NStepWindows, PendingRows, Row, reduce_due, rows_to_transitions,
                                    sets_touched_per_reduction, updates_before_reduce)
-from .core.protocol import protocol_summary
-from .core.replay import FrameReplay
-from .core.config import COMPER_PROFILES, ComperConfig, DQNConfig, resolve_profile
+from comper_agent.core.protocol import protocol_summary
+from comper_agent.core.replay import FrameReplay
+from comper_agent.core.config import COMPER_PROFILES, ComperConfig, DQNConfig, resolve_profile
 
 __all__ = ["ComperNode", "ComperNodeConfig", "FrameReplay", "protocol_summary", "main", "SUMMARY_QOS",
            "TRANSITIONS_QOS", "ALGORITHMS"]
@@ -128,7 +128,7 @@ class ComperNode(AgentNode):
         self.embedded_params = (self.sim_protocol, {"reduce_batch": int(p.reduce_batch)}, {"architecture": "comper"})
 
     def _check_env(self, info) -> None:
-        from .core.comper import resolve_q_network
+        from comper_agent.core.comper import resolve_q_network
         if not info.discrete:
             raise ValueError(f"{info.env_id} has continuous actions; comper_node needs discrete actions (an ALE "
                              "game or a task such as CartPole-v1; use comcact_node for continuous control)")
@@ -157,8 +157,8 @@ class ComperNode(AgentNode):
 
     # ------------------------------------------------------------------------------ setup / state
     def _setup_learner(self) -> None:
-        from .core.comper import ComperLearner
-        from .core.networks import configure_torch
+        from comper_agent.core.comper import ComperLearner
+        from comper_agent.core.networks import configure_torch
         configure_torch(self.cfg.num_threads)
         self.learner = ComperLearner(self.cfg, self.obs_shape, self.n_actions)
         self.replay = None
@@ -166,7 +166,7 @@ class ComperNode(AgentNode):
             if self.is_atari:
                 self.replay = FrameReplay(self.cfg.replay_size, (84, 84), self.cfg.frame_stack, seed=self.cfg.seed)
             else:
-                from .core.replay import ReplayBuffer
+                from comper_agent.core.replay import ReplayBuffer
                 self.replay = ReplayBuffer(self.cfg.replay_size, self.obs_shape, seed=self.cfg.seed)
         if self.eval_every > 0:
             self.evaluation = Evaluation(self, self._eval_action, self._eval_recorded, self.frame_skip,
@@ -181,7 +181,7 @@ class ComperNode(AgentNode):
         self.pending = PendingRows()            # agent steps not yet stored (the newest may wait for its label)
         self.windows = None                     # n_step > 1: the memory stores n-step windows of those steps
         if self.uses_memory and self.cfg.n_step > 1:
-            from .core.comper import clip_rewards
+            from comper_agent.core.comper import clip_rewards
             mode = self.cfg.reward_clip
             self.windows = NStepWindows(self.cfg.n_step, self.cfg.gamma, lambda r: clip_rewards(r, mode))
         self.set_counts: list[np.ndarray] = []

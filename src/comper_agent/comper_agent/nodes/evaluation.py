@@ -3,7 +3,7 @@ environment": a second environment of the task inside the learner's process).
 
 :class:`Evaluation` plays ``eval_episodes`` full episodes of the evaluated (greedy) policy, episode
 k reset from ``eval_seed + k``, and reports them: ``~/episodes`` (source eval) and
-``~/evaluations`` (:class:`~comper_agent.episodes.LearnerTopics`), metrics.jsonl, TensorBoard, the
+``~/evaluations`` (:class:`~comper_agent.nodes.episodes.LearnerTopics`), metrics.jsonl, TensorBoard, the
 console and the node's own progress.csv row.
 """
 from __future__ import annotations

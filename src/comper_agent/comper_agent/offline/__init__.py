@@ -1,0 +1,1 @@
+"""Offline evaluation of recorded runs (bags, checkpoints): no ROS graph needed."""
