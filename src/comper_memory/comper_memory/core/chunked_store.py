@@ -11,13 +11,17 @@
   still knows its answers, and a batch cut short by a crash between chunks is completed, not
   applied twice, when its client re-sends it.
 
-The memory owns one registry; every method of it is called with the memory's lock held.
+The memory owns one registry; every method of it is called with the memory's lock held. What a chunked
+store needs of the memory is one explicit :class:`StoreTarget` the memory makes: its lock, its registry
+and the step that logs and applies one chunk.
 """
 from __future__ import annotations
 
+import threading
 import weakref
 from collections import OrderedDict
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -25,10 +29,21 @@ from comper_msgs_py.arrays import Transitions
 
 from .results import MemoryInputError, StoreResult
 
-if TYPE_CHECKING:
-    from .memory import CompactMemory
+__all__ = ["ChunkedStore", "StoreRegistry", "StoreTarget", "REGISTRY_ARRAYS", "check_registry"]
 
-__all__ = ["ChunkedStore", "StoreRegistry", "REGISTRY_ARRAYS", "check_registry"]
+
+@dataclass(frozen=True)
+class StoreTarget:
+    """What a :class:`ChunkedStore` is applied to: the memory's lock and registry, and three steps the memory
+    gives (each called with the lock held): ``check_open()`` raises MemoryInputError once nothing more may be
+    applied, ``apply_chunk(part, keys, request)`` logs and applies one chunk and returns its StoreResult,
+    ``after_chunk()`` runs once the registry has recorded the chunk (a checkpoint then holds both)."""
+
+    lock: threading.RLock
+    registry: "StoreRegistry"
+    check_open: Callable[[], None]
+    apply_chunk: Callable[[Transitions, np.ndarray, np.ndarray | None], StoreResult]
+    after_chunk: Callable[[], None]
 
 
 class ChunkedStore:
@@ -40,9 +55,9 @@ class ChunkedStore:
     MemoryInputError (nothing more is applied or logged); ``applied`` says how many transitions
     are in the memory then."""
 
-    def __init__(self, memory: CompactMemory, clean: Transitions | None, keys: np.ndarray | None, chunk: int,
+    def __init__(self, target: StoreTarget, clean: Transitions | None, keys: np.ndarray | None, chunk: int,
                  request_id: int = 0, n: int | None = None):
-        self._memory = memory
+        self._target = target
         self._t, self._keys, self.chunk = clean, keys, max(1, int(chunk))
         self.n = len(clean) if n is None else int(n)
         self.request_id = int(request_id)
@@ -86,34 +101,34 @@ class ChunkedStore:
         """Apply the next chunk (no-op once done); True when the whole batch is applied."""
         if self.done:
             return True
-        with self._memory._lock:
+        with self._target.lock:
             self.step_locked()
         return self.done
 
     def step_locked(self) -> None:
         """Apply the next chunk and record it in the registry (a checkpoint after it holds both); the
         caller holds the memory's lock."""
-        m = self._memory
+        t = self._target
         if self.done:
             return
-        if m._closed and m.config.storage_dir:   # its log is closed: nothing more may be applied
-            raise MemoryInputError(f"store: the memory was closed after {self.applied} of {self.n} "
-                                   "transitions of this batch were stored")
-        m.tm.expire(m._clock)
+        try:
+            t.check_open()
+        except MemoryInputError as exc:
+            raise MemoryInputError(f"store: {exc} after {self.applied} of {self.n} transitions of this batch "
+                                   "were stored") from None
         a, b = self.applied, min(self.n, self.applied + self.chunk)
         part = self._t if (a, b) == (0, self.n) else self._t.take(slice(a, b))
-        request = m.stores.request_record(self, a)
-        self.chunk_applied(m._store_chunk(part, self._keys[a:b], request))
+        request = t.registry.request_record(self, a)
+        self.chunk_applied(t.apply_chunk(part, self._keys[a:b], request))
         if self.done:   # a remembered answer keeps its ids only, not the batch (resend_window: 8 bytes each)
             self._t = self._keys = None
-        if m._durable is not None:   # a checkpoint now holds this chunk and the registry's record of it
-            m._durable.maybe_checkpoint()
+        t.after_chunk()
 
     def chunk_applied(self, part: StoreResult) -> None:
         """One more chunk of this batch is in the memory (applied live, or replayed from the WAL)."""
         self._parts.append(part)
         self.applied += len(part.identity_ids)
-        self._memory.stores.progressed(self)
+        self._target.registry.progressed(self)
 
     def result(self) -> StoreResult:
         """The whole batch's StoreResult (applies the chunks still left first)."""
@@ -215,23 +230,23 @@ class StoreRegistry:
     def any_in_progress(self) -> bool:
         return any(not op.done for op in self._in_progress)
 
-    def replayed(self, memory: CompactMemory, request: np.ndarray, part: StoreResult) -> None:
+    def replayed(self, target: StoreTarget, request: np.ndarray, part: StoreResult) -> None:
         """A WAL record of a chunk with request ``[id, offset, n]`` was replayed with result ``part``."""
         rid, offset, n = (int(v) for v in request)
         if not self.tracks(rid):
             return
         op = self._pending_ids.get(rid)
         if op is None and offset == 0:
-            self._recovered(memory, rid, n, part)
+            self._recovered(target, rid, n, part)
         elif op is None or op.applied != offset or op.n != n:   # the log and the snapshot disagree: forget it
             self._pending_ids.pop(rid, None)
         else:
             op.chunk_applied(part)
 
-    def _recovered(self, memory: CompactMemory, rid: int, n: int, part: StoreResult) -> None:
+    def _recovered(self, target: StoreTarget, rid: int, n: int, part: StoreResult) -> None:
         """A store of n transitions known from the WAL or a snapshot, ``part`` of it applied: remembered if
         whole, else waiting for its client's re-send (:attr:`ChunkedStore.needs_batch`)."""
-        ChunkedStore(memory, None, None, len(part.identity_ids), rid, n=n).chunk_applied(part)
+        ChunkedStore(target, None, None, len(part.identity_ids), rid, n=n).chunk_applied(part)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The registry as a snapshot holds it (REGISTRY_ARRAYS)."""
@@ -245,7 +260,7 @@ class StoreRegistry:
             ids.append(r.identity_ids)
         return {_ROWS: rows, _IDS: np.concatenate(ids).astype(np.int64) if ids else np.zeros(0, np.int64)}
 
-    def load(self, memory: CompactMemory, arrays: dict[str, np.ndarray]) -> None:
+    def load(self, target: StoreTarget, arrays: dict[str, np.ndarray]) -> None:
         """Replace the answers by a snapshot's (none in a snapshot written before they were kept); the
         caller has checked them (:func:`check_registry`). Stores in progress here are not touched."""
         self._answers.clear()
@@ -258,7 +273,7 @@ class StoreRegistry:
             part = StoreResult(ids[at:at + applied].copy(), new, hits, evicted, seq)
             at += applied
             if self.tracks(rid):
-                self._recovered(memory, rid, n, part)
+                self._recovered(target, rid, n, part)
 
 
 def check_registry(arrays: dict[str, np.ndarray]) -> str | None:
