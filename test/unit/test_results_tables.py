@@ -409,3 +409,18 @@ def tables() -> str:
 
 if __name__ == "__main__":
     print(tables())
+
+
+def test_the_make_run_figure_follows_from_its_per_run_file():
+    """The README's promise for `make run` (comcact_node's default on InvertedPendulum-v4, 20,000 steps): the return
+    with its interval at 10,000 and 20,000 steps, the seeds and the minutes per run, from s31-ip-default.json."""
+    text = " ".join(README.read_text().split())
+    runs = _learning_runs([("s31-ip-default", "comcact")])
+    every = next(iter(runs.values()))["eval_every"]
+    for step in (10_000, 20_000):
+        mean, lo, hi, n = _figure([_return_at(r["evals"], step, every) for r in runs.values()])
+        cell = f"{mean:,.0f} [{lo:,.0f}, {hi:,.0f}] ({n} seeds)"
+        assert cell in text, f"README: make run's figure at {step} steps should read {cell}"
+    minutes = [r["timers"]["elapsed_s"] / 60 for r in runs.values()]
+    shown = f"took {np.median(minutes):.0f} ({min(minutes):.0f}-{max(minutes):.0f}) minutes"
+    assert shown in text, f"README: make run's time should read '{shown}'"
