@@ -30,9 +30,10 @@ def namespace() -> dict:
     from comper_agent.core import config as agent_config
     from comper_agent.nodes import node_config
     from comper_memory.core import config as memory_config
+    from comper_memory import memory_node
     from comper_sim.core import config as sim_config
     ns = {}
-    for mod in (agent_config, node_config, memory_config, sim_config):
+    for mod in (agent_config, node_config, memory_config, memory_node, sim_config):
         ns.update({k: getattr(mod, k) for k in dir(mod) if not k.startswith("_")})
     return ns
 

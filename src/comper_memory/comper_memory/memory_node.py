@@ -143,20 +143,18 @@ class MemoryNodeConfig:
         "batches of tens to thousands: several threads per small search cost more than they save",
         minimum=0, maximum=1024)
     blas_threads: int = param(
-        1, "threads of numpy's OpenBLAS in this process (0 = the library's default, all cores). 1: the key "
-        "projection of a store call took 0.7 ms with one thread and 13-27 ms with two on the busy 2-core machine "
-        "(benchmarks/memory_atari_bench.py). Process-wide, also when embedded", minimum=0, maximum=1024)
+        1, "threads of numpy's OpenBLAS in this process (0 = the library's default, all cores); 1 keeps a store's "
+        "key projection from competing with the other threads of a 2-core machine (docs/memory-service.md, "
+        "Decisions). Process-wide, also when embedded", minimum=0, maximum=1024)
     store_chunk: int = param(
         1024, "transitions a ~/store call applies per turn of the executor: a larger batch is validated whole "
         "(a refused one stores nothing), then applied in chunks of this many, one WAL record each, and the "
         "node serves other clients' calls between chunks. 0 = every store in one turn (atomic, one WAL "
-        "record; other clients wait for it). A chunk of 1024 26-d keys took 5-35 ms on the busy 2-core machine; "
-        "with 2048 another client still waited 94-319 ms during a 16,384-transition store there (docs/"
-        "memory-service.md, Large batches)", minimum=0,
+        "record; other clients wait for it) (docs/studies/memory-service-hardening.md)", minimum=0,
         maximum=2**31 - 1)
     executor_threads: int = param(
         1, "executor main() spins this node with: 1 = SingleThreadedExecutor (default: requests served one at a "
-        "time, which the core's single lock does anyway; ~3x less CPU per call than rclpy's "
+        "time, which the core's single lock does anyway, for less CPU per call than rclpy's "
         "MultiThreadedExecutor), >= 2 = MultiThreadedExecutor with that many threads (requests taken from DDS at "
         "once). Ignored when the node is embedded in another process", minimum=1, maximum=64)
     snapshot_service: str = param(
