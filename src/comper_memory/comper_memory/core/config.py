@@ -17,9 +17,18 @@ class MemoryConfig:
         "transitions are similar when distance <= delta, checked exactly in float64",
         thesis="1e-4 (section 5.3.2; 1e-5 and 1e-3 also studied); Table 34 lists 0.0", minimum=0.0)
     rtm_capacity: int = param(
-        1_000_000, "maximum number of live identities (RTM entries plus not-yet-reduced sets); "
-        "above it the least recently updated identity is evicted from RTM, TM and the index",
+        1_000_000, "the memory's budget: most live identities (RTM entries plus not-yet-reduced sets); above it "
+        "identities chosen by `removal` are evicted from RTM, TM and the index",
         thesis="not given (RTM grows with the number of identities)", minimum=1)
+    removal: str = param(
+        "lru", "which identities leave when the live identities exceed rtm_capacity: lru = the least recently "
+        "updated (stored or re-stored); fifo = the oldest created (with delta 0 every transition is its own "
+        "identity, so this is a FIFO replay buffer of rtm_capacity transitions); reservoir = a uniform sample of "
+        "every identity ever created (Vitter's algorithm R over identities: the j-th new identity is kept with "
+        "probability rtm_capacity / j, in place of a uniformly chosen one), drawn from removal_seed and the "
+        "identity's id, so a WAL replay evicts the same ones",
+        thesis="not given (the thesis never fills RTM)", choices=("lru", "fifo", "reservoir"))
+    removal_seed: int = param(0, "seed of removal reservoir's draws", minimum=0)
     tm_capacity: int = param(
         100_000, "maximum number of similar-transition sets waiting in TM; above it the least "
         "recently updated identity among them is evicted from TM, RTM and the index",

@@ -56,7 +56,8 @@ class MemoryState:
         self.a = self.slots.a   # the slot columns (one dict for the table's life; tests read it)
         self.tm = TransitionTable(self.slots)
         self.rtm = ReducedTable(self.slots)
-        self.remover = Remover(self.slots, self.tm, self.rtm, c.rtm_capacity, c.tm_capacity)
+        self.remover = Remover(self.slots, self.tm, self.rtm, c.rtm_capacity, c.tm_capacity, c.removal,
+                               c.removal_seed)
         self.reduction = Reduction(self.slots, self.tm, self.rtm)
         for name in COUNTERS:
             setattr(self, name, 0)
@@ -102,7 +103,7 @@ class MemoryState:
         self.similarity_hits += hits
         if n_new:
             self.index.add(new_ids, y[cidx])
-        evicted = self.remover.enforce(self.index)
+        evicted = self.remover.enforce(self.index, new_ids)
         self.evictions += evicted
         return StoreResult(tid, int(n_new), int(hits), int(evicted), self.wal_sequence)
 

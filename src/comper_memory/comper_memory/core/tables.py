@@ -217,18 +217,57 @@ class ReducedTable(_Table):
 
 
 class Remover:
-    """Evicts the least recently updated identities above ``rtm_capacity`` live identities and
-    above ``tm_capacity`` TM sets."""
+    """Evicts identities above ``rtm_capacity`` live identities by the ``removal`` rule (lru: least recently
+    updated, fifo: oldest created, reservoir: a uniform sample of every identity created) and the least recently
+    updated above ``tm_capacity`` TM sets. Every choice is a function of the memory's state (and, for the
+    reservoir, of ``seed`` and the identity's id), so a replayed WAL evicts the same identities."""
+
+    RULES = ("lru", "fifo", "reservoir")
 
     def __init__(self, table: SlotTable, tm: TransitionTable, rtm: ReducedTable,
-                 rtm_capacity: int, tm_capacity: int):
+                 rtm_capacity: int, tm_capacity: int, removal: str = "lru", seed: int = 0):
+        if removal not in self.RULES:
+            raise ValueError(f"removal must be one of {', '.join(self.RULES)}, got {removal!r}")
         self.table, self.tm, self.rtm = table, tm, rtm
         self.rtm_capacity, self.tm_capacity = rtm_capacity, tm_capacity
+        self.removal, self.seed = removal, int(seed)
 
-    def enforce(self, index: SimilarityIndex) -> int:
-        """Evict down to both capacities; returns the number of identities evicted."""
-        ev = self._evict_oldest(index, self.table.slots_sorted, self.table.n_live - self.rtm_capacity)
+    def enforce(self, index: SimilarityIndex, new_ids: np.ndarray = ()) -> int:
+        """Evict down to both capacities after a store that created ``new_ids`` (ascending); returns the number
+        of identities evicted."""
+        over = self.table.n_live - self.rtm_capacity
+        if over <= 0:
+            ev = 0
+        elif self.removal == "fifo":
+            ev = self.evict(index, self.table.slots_sorted[:over])      # slots in the order of their ids
+        elif self.removal == "reservoir":
+            ev = self.evict(index, self.table.slots_of(self._reservoir_out(np.asarray(new_ids, np.int64))))
+        else:
+            ev = self._evict_oldest(index, self.table.slots_sorted, over)
         return ev + self._evict_oldest(index, self.tm.members(), self.tm.n - self.tm_capacity)
+
+    def _reservoir_out(self, new_ids: np.ndarray) -> np.ndarray:
+        """The ids algorithm R lets go when the store that created ``new_ids`` took the live identities ``over``
+        the capacity: each new identity j (ids count identities created, from 0) in turn enters a full reservoir
+        with probability capacity / (j + 1), in place of a member drawn uniformly, else leaves at once. Older
+        identities above the capacity (a capacity lowered since) leave first, oldest first."""
+        cap = self.rtm_capacity
+        pending = set(new_ids.tolist())
+        members = [int(i) for i in self.table.ids_sorted if int(i) not in pending]
+        out = members[:max(0, len(members) - cap)]
+        members = members[len(out):]
+        for j in new_ids.tolist():
+            if len(members) < cap:
+                members.append(j)
+                continue
+            rng = np.random.default_rng([self.seed, j])
+            if rng.random() * (j + 1) < cap:
+                k = int(rng.integers(len(members)))
+                out.append(members[k])
+                members[k] = j
+            else:
+                out.append(j)
+        return np.asarray(out, np.int64)        # as many as `over`: every identity above the capacity
 
     def _evict_oldest(self, index: SimilarityIndex, slots: np.ndarray, over: int) -> int:
         if over <= 0:
