@@ -412,6 +412,8 @@ class MemoryReplayBuffer:
         try:
             if worker is not None:
                 try:
+                    if self._next is not None:
+                        self._next.cancel()            # not needed any more (runs on if it has started)
                     if self._pending and self.memory is not None:
                         parts, self._pending, self._pending_n = self._pending, [], 0
                         self._stores.append(worker.submit(self._store_job, Transitions.concatenate(parts)))
