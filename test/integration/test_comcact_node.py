@@ -88,8 +88,9 @@ def test_embedded_bringup_trains_publishes_and_stops_cleanly_on_ctrl_c(launch, r
         assert 0 <= d["multi_member_fraction"] <= 1 and 0 <= d["label_age_mean"] <= d["step"]
     progress = [r for r in run_io.MetricsLog.read(run / "metrics.jsonl", "progress") if "qt_steps_taken" in r]
     assert progress, "progress records carry the QT step counts"
-    last = progress[-1]    # gate off: every update after QT's first version took its QT step
-    assert last["qt_steps_gated"] == 0 and 0 < last["qt_steps_taken"] <= last["learner_updates"]
+    last = progress[-1]    # the default gates: every update after QT's first version took its QT step or was gated
+    assert 0 < last["qt_steps_taken"] + last["qt_steps_gated"] <= last["learner_updates"]
+    assert "profile fresh_labels_gate (profile:=thesis is the thesis); differs from it in" in log
 
 
 def test_external_bringup_uses_nodes_started_with_ros2_run(launch, tmp_path):
@@ -153,12 +154,11 @@ def test_ddpg_variant_checkpoint_and_resume_continue_the_step_count(launch, tmp_
     assert _evals(tmp_path, "dd") == [0, 100, 200, 300]          # appended in the same run directory
 
     # the actor's saturation offline, on the states of the checkpoint's replay (benchmarks/actor_saturation.py)
-    row = load_benchmark("actor_saturation").saturation(tmp_path / "dd", max_states=1000, seed=0, actor_steps=20, preact_l2=1e-3)
+    row = load_benchmark("actor_saturation").saturation(tmp_path / "dd", max_states=1000, seed=0, actor_steps=20)
     assert row["algorithm"] == "ddpg" and row["step"] == 300 and row["states"] == 300
     assert 0.0 <= row["all_saturated"] <= row["saturation"] <= 1.0 and row["mean_abs_x"] > 0.0
     assert row["action_spread"] > 0.0          # 300 updates in, the actor still answers states differently
-    assert row["actor_steps"] == 20 and row["preact_l2"] == 1e-3
-    assert row["after_mean_abs_x"] < row["mean_abs_x"]      # the penalty pulls x back towards 0
+    assert row["actor_steps"] == 20 and 0.0 <= row["after_saturation"] <= 1.0
     assert all(map(math.isfinite, (row["q_before"], row["q_after"])))
 
     # a checkpoint whose replay file has gone: the resume stops at start with one readable error, writing nothing

@@ -29,11 +29,13 @@ from scaffolding import load_benchmark
 GAME = "ALE/Freeway-v5"
 
 
-def _args(tmp_path, run_id, tag, *extra):
+def _args(tmp_path, run_id, tag, *extra, profile: str | None = "thesis"):
+    """The ALE runs take the thesis profile (single frames, updates from step 100: the pipeline in a few hundred
+    steps; the default on ALE, atari_100k, starts learning at 1,600); profile None: the node's own choice."""
     return ["--ros-args", "-p", f"env_id:={GAME}", "-p", f"runs_root:={tmp_path}", "-p", f"run_id:={run_id}",
             "-p", "progress_period_s:=2.0", "-p", "transport_probe_calls:=10", "-p", "tensorboard:=false",
             "-p", f"sim_node:=sim_{tag}", "-p", f"memory_node:=mem_{tag}", "-p", f"qt_trainer_node:=qt_{tag}",
-            *extra]
+            *(["-p", f"profile:={profile}"] if profile else []), *extra]
 
 
 def _wait(proc, timeout):
@@ -214,7 +216,7 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
                  "-p", "diagnostics_every:=50"]
         if alg != "comper":
             extra += ["-p", "n_step:=3"]    # dqn: windows drawn from the replay; comper_f: stored windows
-        args = _args(tmp_path, alg, tag, *extra)
+        args = _args(tmp_path, alg, tag, *extra, profile=None)
         args[args.index(f"env_id:={GAME}")] = "env_id:=CartPole-v1"
         runs[alg] = launch("comper_agent", "comper_node", *args, "-r", f"comper_node:__node:={name}", name=alg)
     deadline = time.monotonic() + 200
@@ -273,7 +275,7 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
 def test_unknown_or_unsuitable_tasks_are_refused_with_one_line(launch, tmp_path):
     for env_id, words in (("NoSuchTask-v0", "NoSuchTask-v0"), ("Pendulum-v1", "continuous actions")):
         tag = f"bad{abs(hash(env_id)) % 10000}{os.getpid()}"
-        args = _args(tmp_path, tag, tag)
+        args = _args(tmp_path, tag, tag, profile=None)
         args[args.index(f"env_id:={GAME}")] = f"env_id:={env_id}"
         proc = launch("comper_agent", "comper_node", *args, name=tag)
         assert _wait(proc, 60) == 1
