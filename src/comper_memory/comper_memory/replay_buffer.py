@@ -70,6 +70,10 @@ Several learners (or actors and a learner) may share one memory node; the node's
 (``samples_per_insert``) holds them to a ratio, and ``store``/``sample`` then wait in this client
 (``rate_limit_timeout``); a prefetch of ``prefetch`` batches counts as that many samples when it is
 fetched, so with a ratio set give ``rate_error_buffer`` room for it or use ``prefetch=0``.
+
+Size: one class whose parts share one piece of state: the background worker that stores and prefetches, the
+transitions added since the last fetch (``_Recent``), and the sampler that mixes those into a prefetched batch as
+an exact uniform draw; split apart, each would have to reach into the others' bookkeeping.
 """
 from __future__ import annotations
 
