@@ -339,8 +339,13 @@ def at_step(evals, step):
 
 def return_at(evals, step: int, every: int) -> float | None:
     """A run's evaluation return at ``step``: its last evaluation on the grid at or before it, if that one lies
-    within the last eval_every steps (None for a run that ended before)."""
-    e = at_step([{"step": st, "mean_return": mr} for st, mr in on_grid(evals, every)], step)
+    within the last eval_every steps (None for a run that ended before). Where two evaluations fall on one grid point
+    the first counts: comper_node also evaluates once after its budget, when the episode in progress has finished
+    (e.g. at 50,248 for a 50,000-frame budget), which is not the evaluation at the budget."""
+    first: dict[int, float] = {}
+    for st, mr in on_grid(evals, every):
+        first.setdefault(st, mr)
+    e = at_step([{"step": st, "mean_return": mr} for st, mr in first.items()], step)
     return e["mean_return"] if e is not None and e["step"] >= step - every + 1 else None
 
 

@@ -20,6 +20,14 @@ def test_async_evaluation_steps_land_on_their_grid_point():
     assert (at(10000), at(25000), at(50000)) == (60.0, 90.0, 100.0)
 
 
+def test_the_return_at_a_budget_is_the_evaluation_at_it_not_the_one_after_the_last_episode():
+    """comper_node evaluates at its budget and once more when the episode in progress has finished (50,248 here):
+    both land on the 50,000 grid point, and the return at 50,000 is the first (a CartPole run once read 70 for 500)."""
+    lb = _bench()
+    evals = [[45_000, 480.0], [50_000, 500.0], [50_248, 70.0]]
+    assert lb.return_at(evals, 50_000, 5_000) == 500.0 and lb.return_at(evals, 45_000, 5_000) == 480.0
+
+
 def test_final_mean_averages_the_last_grid_evaluations_and_needs_all_of_them():
     b = _bench()
     evals = [[st, float(st // 5000), 0.0] for st in range(0, 50001, 5000)]       # return = index of the evaluation

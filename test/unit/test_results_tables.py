@@ -189,13 +189,8 @@ def _learning_runs(sources) -> dict[int, dict]:
 
 
 def _return_at(evals, step: int, every: int) -> float | None:
-    """learning_bench's return at `step`, from the evaluation logged at that grid point: comper_node also evaluates
-    once after its budget (the episode in progress finishes, e.g. at 50,248), which on_grid would put on the same
-    grid point; the first evaluation there is the one at the budget."""
-    first: dict[int, float] = {}
-    for st, v in LEARNING_BENCH.on_grid(evals, every):
-        first.setdefault(st, v)
-    return LEARNING_BENCH.return_at([[st, v] for st, v in first.items()], step, every)
+    """learning_bench's return at `step` (the first evaluation logged at that grid point)."""
+    return LEARNING_BENCH.return_at(evals, step, every)
 
 
 def _learning_values(sources, step: int = 50_000) -> list[float]:
