@@ -252,18 +252,21 @@ class Remover:
         with probability capacity / (j + 1), in place of a member drawn uniformly, else leaves at once. Older
         identities above the capacity (a capacity lowered since) leave first, oldest first."""
         cap = self.rtm_capacity
-        pending = set(new_ids.tolist())
-        members = [int(i) for i in self.table.ids_sorted if int(i) not in pending]
-        out = members[:max(0, len(members) - cap)]
-        members = members[len(out):]
+        ids = self.table.ids_sorted
+        old = ids[~np.isin(ids, new_ids)]           # the reservoir before this store, by id
+        out = list(old[:max(0, len(old) - cap)].tolist())
+        members = np.empty(cap, np.int64)            # the reservoir, filled to n
+        n = min(len(old), cap)
+        members[:n] = old[len(old) - n:]
         for j in new_ids.tolist():
-            if len(members) < cap:
-                members.append(j)
+            if n < cap:
+                members[n] = j
+                n += 1
                 continue
             rng = np.random.default_rng([self.seed, j])
             if rng.random() * (j + 1) < cap:
-                k = int(rng.integers(len(members)))
-                out.append(members[k])
+                k = int(rng.integers(n))
+                out.append(int(members[k]))
                 members[k] = j
             else:
                 out.append(j)
