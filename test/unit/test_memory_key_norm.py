@@ -133,3 +133,56 @@ def test_snapshot_and_wal_replay_rebuild_the_normaliser(tmp_path):
     for other in (MemoryConfig(delta=0.3), MemoryConfig(delta=0.3, key_normalisation="running", key_norm_growth=4.0)):
         with pytest.raises(SnapshotError, match="key normalisation"):
             CompactMemory(other).load_snapshot(path)
+
+
+@pytest.mark.parametrize("mode", ["none", "running"])
+def test_nn_quantile_puts_delta_at_the_quantile_of_nearest_neighbour_distances(mode):
+    """delta_rule nn_quantile: after the first freeze (256 identities or more) the keys are scaled so that delta is
+    the delta_quantile quantile of squared nearest-neighbour distances between live identities (all of them here:
+    fewer than 1,024); identical transitions still join."""
+    from comper_memory.core.key_norm import NN_MIN_IDENTITIES
+    cfg = MemoryConfig(delta=1.0, key_normalisation=mode, delta_rule="nn_quantile", delta_quantile=0.25)
+    mem = CompactMemory(cfg)
+    rng = np.random.default_rng(4)
+    mem.store(vec(rng, NN_MIN_IDENTITIES // 2))
+    mem.reduce(max_sets=10)
+    assert mem.stats()["key_norm_updates"] == 0            # too few identities to measure a spread
+    mem.store(vec(rng, 400))
+    mem.reduce(max_sets=10)
+    assert mem.stats()["key_norm_updates"] == 1
+    keys = mem.slots.keys_of(mem.slots.live_ids()).astype(np.float64)
+    d = ((keys[:, None, :] - keys[None, :, :]) ** 2).sum(-1)
+    np.fill_diagonal(d, np.inf)
+    nn = d.min(1)
+    assert abs(np.quantile(nn, 0.25) - cfg.delta) < 1e-6 * cfg.delta + 1e-9
+    kept = mem.slots.live_ids()[:5]
+    assert mem.store(mem.slots.reps(mem.slots.slots_of(kept), np.zeros(5, np.float32))).new_identities == 0
+
+
+def test_nn_quantile_survives_snapshot_and_wal_replay_and_must_match(tmp_path):
+    from test_memory_storage import assert_same_state
+    cfg = MemoryConfig(storage_dir=str(tmp_path), snapshot_every=4, delta=1.0, key_normalisation="running",
+                       delta_rule="nn_quantile", delta_quantile=0.1, index_min_train=16)
+    mem = CompactMemory(cfg)
+    rng = np.random.default_rng(5)
+    for i in range(10):
+        mem.store(vec(rng, 120))
+        if i % 2 == 1:
+            mem.reduce(max_sets=100)
+    assert mem.stats()["key_norm_updates"] >= 2 and mem.stats()["similarity_hits"] > 0
+    again = CompactMemory(cfg)
+    assert_same_state(mem, again)
+    probe = vec(rng, 30)
+    assert np.array_equal(mem.store(probe).identity_ids, again.store(probe).identity_ids)
+    path = str(tmp_path / "snap")
+    mem.save_snapshot(path)
+    with pytest.raises(SnapshotError, match="key normalisation"):
+        CompactMemory(MemoryConfig(delta=1.0, key_normalisation="running", delta_rule="nn_quantile",
+                                   delta_quantile=0.2)).load_snapshot(path)
+
+
+@pytest.mark.parametrize("bad", [dict(delta=0.0), dict(delta=1.0, delta_quantile=0.0),
+                                 dict(delta=1.0, delta_quantile=1.0)])
+def test_nn_quantile_needs_a_positive_delta_and_an_inner_quantile(bad):
+    with pytest.raises(ConfigError, match="nn_quantile"):
+        CompactMemory(MemoryConfig(delta_rule="nn_quantile", **bad))

@@ -1,5 +1,5 @@
 """The memory's budget: `rtm_capacity` live identities and the `removal` rule that decides which leave (lru, fifo,
-reservoir), in-process and through a WAL replay. With keys far apart every transition is its own identity, so the
+reservoir, coverage), in-process and through a WAL replay. With keys far apart every transition is its own identity, so the
 rules are those of the plain buffers they are named after."""
 import numpy as np
 import pytest
@@ -62,7 +62,7 @@ def test_reservoir_keeps_a_uniform_sample_of_every_identity_created():
     assert live_ids(again) == ids                              # the same draws from the same seed and ids
 
 
-@pytest.mark.parametrize("removal", ["fifo", "reservoir"])
+@pytest.mark.parametrize("removal", ["fifo", "reservoir", "coverage"])
 def test_a_replayed_log_evicts_the_same_identities(tmp_path, removal):
     rng = np.random.default_rng(3)
     cfg = dict(storage_dir=str(tmp_path / "store"), snapshot_every=0)
@@ -74,6 +74,30 @@ def test_a_replayed_log_evicts_the_same_identities(tmp_path, removal):
     back = memory(50, removal, **cfg)
     assert live_ids(back) == before and back.stats()["evictions"] == 6 * 40 - 50
     back.close()
+
+
+def test_coverage_lets_identities_go_where_the_keys_are_densest():
+    """A dense cluster of 900 identities and 100 spread far apart, into a budget of 500: the coverage rule evicts
+    from the cluster and keeps every spread one (fifo and reservoir would keep about half of them); a store that
+    needs more than its candidates still lands exactly on the capacity; the draws repeat with the seed."""
+    rng = np.random.default_rng(7)
+    dense = batch(rng, 900)
+    for f in ("states", "next_states"):
+        getattr(dense, f)[:] *= 1e-3
+    spread = batch(rng, 100)
+    for f in ("states", "next_states"):
+        getattr(spread, f)[:] *= 100
+    runs = []
+    for _ in range(2):
+        mem = CompactMemory(MemoryConfig(rtm_capacity=500, tm_capacity=10_000, max_store_batch=500,
+                                         removal="coverage"))
+        mem.store(spread)
+        for k in range(0, 900, 100):
+            mem.store(dense.take(slice(k, k + 100)))
+        assert mem.slots.n_live == 500 and mem.stats()["evictions"] == 500
+        runs.append(live_ids(mem))
+    assert set(range(100)) <= set(runs[0])                     # every spread identity kept
+    assert runs[0] == runs[1]
 
 
 def test_an_unknown_rule_is_refused():

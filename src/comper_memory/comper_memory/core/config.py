@@ -5,6 +5,7 @@ from dataclasses import dataclass
 
 from comper_msgs_py.params import ConfigError, param
 
+from .frames import AUTO_MIN_FRAME_BYTES, FRAME_STORE_MODES
 from .key_norm import KEY_NORM_MODES
 
 __all__ = ["MemoryConfig"]
@@ -26,9 +27,23 @@ class MemoryConfig:
         "identity, so this is a FIFO replay buffer of rtm_capacity transitions); reservoir = a uniform sample of "
         "every identity ever created (Vitter's algorithm R over identities: the j-th new identity is kept with "
         "probability rtm_capacity / j, in place of a uniformly chosen one), drawn from removal_seed and the "
-        "identity's id, so a WAL replay evicts the same ones",
-        thesis="not given (the thesis never fills RTM)", choices=("lru", "fifo", "reservoir"))
-    removal_seed: int = param(0, "seed of removal reservoir's draws", minimum=0)
+        "identity's id, so a WAL replay evicts the same ones; coverage = where the keys are densest (of 4 "
+        "uniformly drawn candidates per identity to evict, at least 64, the one nearest to a uniform sample of up "
+        "to 2,048 live identities leaves, in turn; de Bruin et al., JMLR 2018), drawn from removal_seed and the "
+        "store's first new id",
+        thesis="not given (the thesis never fills RTM)", choices=("lru", "fifo", "reservoir", "coverage"))
+    removal_seed: int = param(0, "seed of the reservoir and coverage removal draws", minimum=0)
+    delta_rule: str = param(
+        "fixed", "fixed = delta as given; nn_quantile = delta follows the keys' spread: at each key normaliser freeze "
+        "(key_norm_growth; the first once 256 identities live) keys are scaled so that delta sits at the "
+        "delta_quantile quantile of squared nearest-neighbour distances between up to 1,024 live identities and up "
+        "to 4,096 (fewer for long keys), evenly spread over the ids (docs/memory.md, 'Key normalisation')",
+        thesis="fixed (section 5.3.2)", deviation="nn_quantile is not in the thesis: at a fixed delta MuJoCo keys "
+        "form no sets", choices=("fixed", "nn_quantile"))
+    delta_quantile: float = param(
+        0.1, "delta_rule nn_quantile: the quantile of nearest-neighbour distances delta is set to (higher: "
+        "more transitions join a set, coarser sets; docs/memory.md, 'Key normalisation', has identities per "
+        "1,000 transitions at 0.05-0.5)", minimum=0.0, maximum=1.0)
     tm_capacity: int = param(
         100_000, "maximum number of similar-transition sets waiting in TM; above it the least "
         "recently updated identity among them is evicted from TM, RTM and the index",
@@ -61,6 +76,17 @@ class MemoryConfig:
     frame_scale: float = param(
         1.0 / 255.0, "factor applied once to uint8 observations when building keys (float32 "
         "observations are used raw)", thesis="frames scaled to [0, 1] (section 5.1)", minimum=0.0)
+    frame_store: str = param(
+        "auto", "how representatives keep their observations: 'on' = by reference, each distinct frame stored once "
+        "(found by its bytes) and a state or next state kept as the ids of its frames, rebuilt byte for byte when "
+        "read (keys, samples, snapshots); 'off' = whole observations per identity; 'auto' = 'on' for uint8 "
+        f"observations stacked along frame_axis (3 or more dimensions) whose frames hold at least "
+        f"{AUTO_MIN_FRAME_BYTES} bytes (stacked Atari frames), else 'off'. Decisions and samples are identical "
+        "either way (docs/memory.md, 'Frame store')", choices=FRAME_STORE_MODES)
+    frame_axis: int = param(
+        0, "frame_store: the observation axis frames are stacked along (0: [stack, H, W], the suite's Atari "
+        "observations; 2 for [H, W, stack]); -1 = the whole observation is one frame (camera images), as is any "
+        "observation of fewer than 3 dimensions", minimum=-1)
     key_normalisation: str = param(
         "none", "how keys are scaled before every similarity decision: 'none' (raw [s, a, r, s']) or 'running' "
         "(each dimension standardised by the running mean and standard deviation of the keys stored so far, "
@@ -152,6 +178,11 @@ class MemoryConfig:
                               "samples_per_insert is set")
         if self.key_normalisation not in KEY_NORM_MODES:
             raise ConfigError(f"key_normalisation {self.key_normalisation!r} is not one of {', '.join(KEY_NORM_MODES)}")
+        if self.delta_rule == "nn_quantile" and not (self.delta > 0 and 0 < self.delta_quantile < 1):
+            raise ConfigError(f"delta_rule nn_quantile needs delta > 0 and 0 < delta_quantile < 1 (got delta "
+                              f"{self.delta:g}, delta_quantile {self.delta_quantile:g})")
+        if self.frame_store not in FRAME_STORE_MODES:
+            raise ConfigError(f"frame_store {self.frame_store!r} is not one of {', '.join(FRAME_STORE_MODES)}")
         if self.durability not in ("flush", "fsync", "none"):
             raise ConfigError(f"durability {self.durability!r} is not one of flush, fsync, none")
         return self

@@ -14,6 +14,14 @@ index are on one scale:
 * a dimension whose standard deviation is below ``key_norm_min_std`` keeps scale 1 (a constant
   reward, a padding value), so it never divides by ~0.
 
+With ``delta_rule: nn_quantile`` (either mode) every freeze also divides the map by one factor g chosen so that
+``delta`` sits at the ``delta_quantile`` quantile of the squared nearest-neighbour distances between live
+identities: up to NN_QUERIES identities, evenly spread over the ids, each with its nearest among up to NN_REFS
+(fewer for long keys) of them, measured on the keys as standardised so far. Dividing every key by g is the same as
+multiplying ``delta`` by g^2, so the index and its exactness are unchanged; the rule only decides the scale, and it
+follows the keys' spread as they grow (sets form at every budget). Its first freeze waits for NN_MIN_IDENTITIES
+live identities (a handful of keys says nothing of their spread).
+
 Before the first freeze the frozen map is the identity (mean 0, scale 1). Stores and commits are
 what the write-ahead log replays, so a recovered memory rebuilds the same moments and freezes; a
 snapshot holds them (:meth:`arrays` / :meth:`load`). ``delta`` is then a squared distance in
@@ -24,9 +32,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["KeyNormaliser", "KEY_NORM_MODES", "resolve_store"]
+__all__ = ["KeyNormaliser", "KEY_NORM_MODES", "DELTA_RULES", "nn_quantile_scale", "resolve_store"]
 
 KEY_NORM_MODES = ("none", "running")
+DELTA_RULES = ("fixed", "nn_quantile")
+NN_QUERIES, NN_REFS, NN_REF_VALUES, NN_MIN_IDENTITIES = 1024, 4096, 1 << 24, 256
 
 
 def resolve_store(index, key_norm: "KeyNormaliser", raw_keys: np.ndarray):
@@ -37,18 +47,34 @@ def resolve_store(index, key_norm: "KeyNormaliser", raw_keys: np.ndarray):
     return y, index.resolve(keys, y)
 
 
+def nn_quantile_scale(keys: np.ndarray, delta: float, quantile: float) -> float:
+    """g such that delta is the ``quantile`` of the squared nearest-neighbour distances among ``keys / g`` (rows
+    ordered by id): NN_QUERIES rows evenly spread, each against every other row. 1.0 when that quantile is 0."""
+    x = np.asarray(keys, np.float64)
+    q = np.unique(np.linspace(0, len(x) - 1, min(len(x), NN_QUERIES)).astype(np.int64))
+    sq = (x * x).sum(1)
+    d2 = np.maximum(sq[q, None] + sq[None, :] - 2.0 * x[q] @ x.T, 0.0)
+    d2[np.arange(len(q)), q] = np.inf
+    dq = float(np.quantile(d2.min(1), quantile))
+    return float(np.sqrt(dq / delta)) if dq > 0 and delta > 0 else 1.0
+
+
 class KeyNormaliser:
     """Frozen per-dimension (mean, scale) applied to keys, and the running moments behind them."""
 
-    def __init__(self, mode: str = "none", growth: float = 2.0, min_std: float = 1e-6):
+    def __init__(self, mode: str = "none", growth: float = 2.0, min_std: float = 1e-6, delta_rule: str = "fixed",
+                 delta: float = 0.0, delta_quantile: float = 0.1):
         if mode not in KEY_NORM_MODES:
             raise ValueError(f"key_normalisation must be one of {', '.join(KEY_NORM_MODES)}, got {mode!r}")
+        if delta_rule not in DELTA_RULES:
+            raise ValueError(f"delta_rule must be one of {', '.join(DELTA_RULES)}, got {delta_rule!r}")
         self.mode, self.growth, self.min_std = mode, float(growth), float(min_std)
+        self.delta_rule, self.delta, self.delta_quantile = delta_rule, float(delta), float(delta_quantile)
         self.reset()
 
     @property
     def enabled(self) -> bool:
-        return self.mode == "running"
+        return self.mode == "running" or self.delta_rule == "nn_quantile"
 
     def reset(self) -> None:
         self.mean = self.scale = None      # frozen map (None: identity)
@@ -81,14 +107,24 @@ class KeyNormaliser:
         self.m2 = self.m2 + m2b + d * d * (self.n * nb / n)
         self.n = n
 
-    def maybe_freeze(self) -> bool:
+    def maybe_freeze(self, live_keys=None) -> bool:
         """At a committed reduction: replace the frozen map when the moments have grown enough;
-        True when it changed (the caller re-indexes)."""
+        True when it changed (the caller re-indexes). ``live_keys(k)``: raw keys of up to k live identities
+        evenly spread over the ids (the nn_quantile rule's sample)."""
         if not self.enabled or self.n < 2 or (self.frozen_n and self.n < self.growth * self.frozen_n):
             return False
-        std = np.sqrt(self.m2 / self.n)
-        self.mean = self.mu.copy()
-        self.scale = np.where(std < self.min_std, 1.0, std)
+        if self.mode == "running":
+            std = np.sqrt(self.m2 / self.n)
+            mean, scale = self.mu.copy(), np.where(std < self.min_std, 1.0, std)
+        else:
+            mean, scale = np.zeros_like(self.mu), np.ones_like(self.mu)
+        if self.delta_rule == "nn_quantile":
+            sample = live_keys(min(NN_REFS, max(NN_MIN_IDENTITIES, NN_REF_VALUES // len(mean))))
+            if len(sample) < NN_MIN_IDENTITIES:
+                return False
+            scale = scale * nn_quantile_scale((np.asarray(sample, np.float64) - mean) / scale, self.delta,
+                                              self.delta_quantile)
+        self.mean, self.scale = mean, scale
         self.frozen_n = self.n
         self.updates += 1
         return True

@@ -21,12 +21,13 @@ from . import storage as st
 from .chunked_store import StoreRegistry, StoreTarget, check_registry
 from .config import MemoryConfig
 from .durability import COUNTERS, arrays_to_t, check_counters
+from .frames import frame_layout, layout_meta, written_layout
 from .index import make_index
 from .key_norm import KeyNormaliser, resolve_store
 from .reduction import Reduction
-from .results import CommitResult, StoreResult
+from .results import CommitResult, MemoryInputError, StoreResult
 from .similarity import ResolveResult, SimilarityIndex
-from .slots import SlotTable
+from .slots import SlotTable, check_snapshot_obs
 from .tables import ReducedTable, Remover, TransitionTable
 from .validation import index_key_size, schema_of, validate_store
 
@@ -51,7 +52,8 @@ class MemoryState:
         c = self.config
         self.schema: dict | None = None   # obs_shape, obs_dtype, action_shape, action_dtype, key_size
         self.index: SimilarityIndex | None = None
-        self.key_norm = KeyNormaliser(c.key_normalisation, c.key_norm_growth, c.key_norm_min_std)
+        self.key_norm = KeyNormaliser(c.key_normalisation, c.key_norm_growth, c.key_norm_min_std, c.delta_rule,
+                                      c.delta, c.delta_quantile)
         self.slots = SlotTable(c.history_length, c.frame_scale, self.key_norm)
         self.a = self.slots.a   # the slot columns (one dict for the table's life; tests read it)
         self.tm = TransitionTable(self.slots)
@@ -64,9 +66,17 @@ class MemoryState:
         self.next_reduction_id = 1
 
     def init_schema(self, schema: dict) -> None:
-        """The first store (or a snapshot) fixes the transitions' shapes and the index's key size."""
+        """The first store (or a snapshot) fixes the transitions' shapes, whether observations are kept as frames
+        (``frame_store``, frames.py) and the index's key size; MemoryInputError (nothing set) if ``frame_axis``
+        does not fit the observations."""
+        c = self.config
+        try:
+            layout = frame_layout(c.frame_store, c.frame_axis, schema["obs_shape"], schema["obs_dtype"])
+        except ValueError as e:
+            raise MemoryInputError(f"store: {e}") from None
+        schema = {**schema, "frames": layout_meta(layout)}
         self.schema = schema
-        self.slots.schema = schema
+        self.slots.set_schema(schema, layout)
         key = index_key_size(schema["obs_shape"], schema["action_shape"])
         self.index = make_index(self.config, key, self.slots, self.index_engine)
 
@@ -110,12 +120,18 @@ class MemoryState:
     def apply_commit(self, rid, ids, preds, in_tm, tm_key, replay: bool = False) -> CommitResult:
         """Apply a checked reduction commit: upsert its identities into RTM."""
         n = self.reduction.apply(rid, ids, preds, in_tm, tm_key, replay)
-        if self.key_norm.maybe_freeze():   # new mean/scale: every identity's key changes
+        if self.key_norm.maybe_freeze(self._live_raw_keys):   # new mean/scale: every identity's key changes
             self.index = make_index(self.config, self.index.key_dim, self.slots, self.index_engine)
             self.index.reindex()
         self.reductions += 1
         self.sets_reduced += n
         return CommitResult(rid, n, len(ids) - n, self.wal_sequence)
+
+    def _live_raw_keys(self, k: int) -> np.ndarray:
+        """Raw keys of up to ``k`` live identities evenly spread over the ids (the delta rule's sample)."""
+        slots = self.slots.slots_sorted
+        pick = np.unique(np.linspace(0, len(slots) - 1, min(len(slots), k)).astype(np.int64))
+        return self.slots.raw_keys_of_slots(slots[pick])
 
     # ------------------------------------------------------------------ snapshots and the WAL
     def arrays(self) -> tuple[dict[str, np.ndarray], dict]:
@@ -151,6 +167,16 @@ class MemoryState:
         if sch is not None and self.expected_key_size is not None and sch["key_size"] != self.expected_key_size:
             raise st.SnapshotError(f"snapshot key size {sch['key_size']} differs from {self.expected_key_size}")
         check_counters(arrays, meta)
+        written = None
+        if sch is not None and arrays:
+            try:
+                written = written_layout(sch)
+                frame_layout(c.frame_store, c.frame_axis, sch["obs_shape"], sch["obs_dtype"])
+            except ValueError as e:
+                raise st.SnapshotError(f"snapshot does not fit this memory: {e}") from None
+            bad = check_snapshot_obs(arrays, written)
+            if bad:
+                raise st.SnapshotError(f"snapshot {bad}")
         bad = check_registry(arrays)
         if bad:
             raise st.SnapshotError(f"snapshot {bad}")
@@ -161,7 +187,7 @@ class MemoryState:
         if sch is None:
             return
         self.init_schema({**sch, "obs_shape": tuple(sch["obs_shape"]), "action_shape": tuple(sch["action_shape"])})
-        self.slots.load_rows(arrays)
+        self.slots.load_rows(arrays, written)
         self.tm.restore(arrays["tm_order"])
         self.rtm.restore(arrays["rtm_order"])
         self.key_norm.load(arrays)
@@ -191,6 +217,8 @@ def _key_norm_meta(settings: dict) -> dict:
     """The key normaliser's settings a snapshot records and must match, from a config (as a dict) or a
     snapshot's meta (written before the option: none). With 'running' its growth and floor decide when
     the frozen map changes, so a WAL replayed on top of the snapshot must use the same ones."""
+    rule = {} if settings.get("delta_rule", "fixed") == "fixed" else \
+        {k: settings.get(k) for k in ("delta_rule", "delta_quantile", "key_norm_growth")}
     if settings.get("key_normalisation", "none") == "none":
-        return {"key_normalisation": "none"}
-    return {k: settings.get(k) for k in ("key_normalisation", "key_norm_growth", "key_norm_min_std")}
+        return {"key_normalisation": "none", **rule}
+    return {**{k: settings.get(k) for k in ("key_normalisation", "key_norm_growth", "key_norm_min_std")}, **rule}

@@ -218,11 +218,15 @@ class ReducedTable(_Table):
 
 class Remover:
     """Evicts identities above ``rtm_capacity`` live identities by the ``removal`` rule (lru: least recently
-    updated, fifo: oldest created, reservoir: a uniform sample of every identity created) and the least recently
+    updated, fifo: oldest created, reservoir: a uniform sample of every identity created, coverage: where the keys
+    are densest) and the least recently
     updated above ``tm_capacity`` TM sets. Every choice is a function of the memory's state (and, for the
     reservoir, of ``seed`` and the identity's id), so a replayed WAL evicts the same identities."""
 
-    RULES = ("lru", "fifo", "reservoir")
+    RULES = ("lru", "fifo", "reservoir", "coverage")
+    #: coverage: candidates drawn per identity to evict (at least COVERAGE_MIN_CANDIDATES), and the most key values
+    #: the reference sample may hold (2,048 identities of MuJoCo keys, ~300 of 4-frame Atari keys)
+    COVERAGE_CANDIDATES, COVERAGE_MIN_CANDIDATES, COVERAGE_REF_VALUES, COVERAGE_MAX_REFS = 4, 64, 1 << 24, 2048
 
     def __init__(self, table: SlotTable, tm: TransitionTable, rtm: ReducedTable,
                  rtm_capacity: int, tm_capacity: int, removal: str = "lru", seed: int = 0):
@@ -242,6 +246,8 @@ class Remover:
             ev = self.evict(index, self.table.slots_sorted[:over])      # slots in the order of their ids
         elif self.removal == "reservoir":
             ev = self.evict(index, self.table.slots_of(self._reservoir_out(np.asarray(new_ids, np.int64))))
+        elif self.removal == "coverage":
+            ev = self.evict(index, self._densest(over, np.asarray(new_ids, np.int64)))
         else:
             ev = self._evict_oldest(index, self.table.slots_sorted, over)
         return ev + self._evict_oldest(index, self.tm.members(), self.tm.n - self.tm_capacity)
@@ -271,6 +277,35 @@ class Remover:
             else:
                 out.append(j)
         return np.asarray(out, np.int64)        # as many as `over`: every identity above the capacity
+
+    def _densest(self, over: int, new_ids: np.ndarray) -> np.ndarray:
+        """The ``over`` slots the coverage rule lets go: candidates drawn uniformly from the live identities
+        (COVERAGE_CANDIDATES per identity to evict, at least COVERAGE_MIN_CANDIDATES), each with the squared
+        distance of its key (as the index sees it) to the nearest of a uniform reference sample of live identities
+        (up to COVERAGE_MAX_REFS, fewer for long keys); the candidate with the nearest neighbour leaves, in
+        turn, and a reference that left no longer counts as a neighbour. So identities leave where the keys are
+        densest and the memory keeps its spread (de Bruin et al., JMLR 2018). Draws from ``seed`` and the first
+        new id: a WAL replay evicts the same ones."""
+        slots = self.table.slots_sorted
+        n = len(slots)
+        if over >= n:
+            return slots.copy()
+        rng = np.random.default_rng([self.seed, int(new_ids[0]) if len(new_ids) else int(self.table.ids_sorted[-1])])
+        k = min(n, max(self.COVERAGE_MIN_CANDIDATES, self.COVERAGE_CANDIDATES * over))
+        cand = np.sort(rng.choice(n, size=k, replace=False))
+        key_dim = self.table.keys_of_slots(slots[cand[:1]]).shape[1]
+        r = min(n, self.COVERAGE_MAX_REFS, max(self.COVERAGE_MIN_CANDIDATES, self.COVERAGE_REF_VALUES // key_dim))
+        refs = np.sort(rng.choice(n, size=r, replace=False))
+        kc = self.table.keys_of_slots(slots[cand]).astype(np.float64)
+        kr = self.table.keys_of_slots(slots[refs]).astype(np.float64)
+        d2 = (kc * kc).sum(1)[:, None] + (kr * kr).sum(1)[None, :] - 2.0 * kc @ kr.T
+        d2[cand[:, None] == refs[None, :]] = np.inf            # not its own neighbour
+        out = np.zeros(k, bool)
+        for _ in range(over):                                   # k >= over: over < n
+            i = int(np.nanargmin(np.where(out, np.nan, d2.min(1))))
+            out[i] = True
+            d2[:, refs == cand[i]] = np.inf                     # gone: no longer anyone's neighbour
+        return slots[cand[out]]
 
     def _evict_oldest(self, index: SimilarityIndex, slots: np.ndarray, over: int) -> int:
         if over <= 0:
