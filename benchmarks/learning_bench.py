@@ -423,6 +423,17 @@ def difference_table(args, table: dict, steps: list) -> tuple[list, dict]:
     return lines, out
 
 
+MEMORY_FIELDS = ("identities", "transitions_stored", "bytes_used", "evictions", "similarity_hits", "rtm_size",
+                 "replay_size", "replay_bytes")
+
+
+def memory_summary(metrics: Path) -> list[dict]:
+    """A run's 'memory' records (one per evaluation) cut to what the budget study reports: step, identities,
+    transitions stored, bytes held, evictions (a DDPG run: its replay's size and bytes)."""
+    recs = went_on_with(MetricsLog.read(metrics, "memory", missing_ok=True), "step")
+    return [{"step": r["step"], **{k: r[k] for k in MEMORY_FIELDS if k in r}} for r in recs]
+
+
 def report(args, base: Path) -> dict:
     import numpy as np
     results = {"total_steps": args.total_steps, "eval_every": args.eval_every, "eval_episodes": args.eval_episodes,
@@ -438,7 +449,7 @@ def report(args, base: Path) -> dict:
                 timers = run_timers(MetricsLog.read(m, "timers", missing_ok=True))
                 results["runs"][rid] = {"task": t, "algorithm": a, "seed": s,
                                         "evals": [(e["step"], e["mean_return"], e["std_return"]) for e in evals],
-                                        "timers": timers}
+                                        "timers": timers, "memory": memory_summary(m)}
     tasks, algorithms = list(args.tasks), list(args.algorithms)
     for inc in args.include:
         prev = json.loads(Path(inc).read_text())

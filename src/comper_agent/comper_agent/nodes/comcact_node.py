@@ -162,6 +162,7 @@ class ComcactNode(AgentNode):
             if self.next_eval is not None and self.step >= self.next_eval:
                 self._flush()
                 self.evaluation.run(self.step)
+                self._memory_record()
                 self.next_eval += p.eval_every
             self._after_step()
         self._flush()
@@ -217,6 +218,7 @@ class ComcactNode(AgentNode):
                 last_policy = time.monotonic()
             if self.next_eval is not None and self.step >= self.next_eval:
                 self.evaluation.run(self.step)
+                self._memory_record()
                 self.next_eval = next_due(self.step, p.eval_every)
             self._after_step()
         # the updates still owed for the last steps (the rate limiter lets learning trail acting by up to
@@ -232,6 +234,16 @@ class ComcactNode(AgentNode):
         if self.policy_pub is not None:
             self.policy_pub.close()
             self.policy_pub = None
+
+    def _memory_record(self) -> None:
+        """A 'memory' record in metrics.jsonl at each evaluation: the memory's statistics (identities, transitions
+        stored, bytes held, evictions, ...) or, for DDPG, its replay's size."""
+        if self.comcact:
+            with self.ptimers("memory"):
+                rec = self.mem.stats()
+        else:
+            rec = {"replay_size": len(self.replay), "replay_bytes": self.replay.nbytes}
+        self.metrics.write("memory", step=self.step, wall_time_s=self.wall_time(), **rec)
 
     def _final_records(self, rc: int) -> None:
         if self.fleet is not None:
