@@ -11,6 +11,7 @@ One learner per domain, held fixed, only the memory changes:
   (key_normalisation running, delta_rule nn_quantile at delta_quantile 0.1, removal coverage).
 
     python benchmarks/budget_bench.py --domain mujoco                      # 70 runs, 2 at a time (~13 h)
+    python benchmarks/budget_bench.py --domain atari                       # 12 runs (~11 h)
     python benchmarks/budget_bench.py --domain mujoco --seeds 1 --only-print   # the commands, nothing run
     python benchmarks/budget_bench.py --export benchmarks/results/learning/budget-mujoco/runs   # finished runs
     python benchmarks/budget_bench.py --report                             # table + plots from the records
@@ -37,8 +38,11 @@ RECORDS = ROOT / "docs" / "results" / "budget"
 STUDY = ROOT / "docs" / "studies" / "memory-budget.md"
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-#: (tasks, steps, budgets) per domain: budgets are ~1/4 and ~1/10 of the run's transitions
-DOMAINS = {"mujoco": (["Hopper-v4", "HalfCheetah-v4"], 50_000, [12_500, 5_000])}
+#: (tasks, steps, budgets) per domain: budgets are ~1/4 and ~1/10 of the run's transitions (Atari: steps are frames,
+#: 4 a transition, and ~1/4 only)
+DOMAINS = {"mujoco": (["Hopper-v4", "HalfCheetah-v4"], 50_000, [12_500, 5_000]),
+           "atari": (["ALE/Seaquest-v5"], 100_000, [6_250])}
+SEEDS = {"mujoco": 5, "atari": 3}
 MEMORIES = ("fifo", "reservoir", "compact")
 
 
@@ -55,12 +59,27 @@ def memory_params(memory: str, budget: int) -> list[tuple[str, str]]:
     raise ValueError(memory)
 
 
-def variants(budgets: list[int]) -> dict[str, list[tuple[str, str]]]:
+def variants(budgets: list[int], sep: str = "-") -> dict[str, list[tuple[str, str]]]:
+    """{name: memory parameters}: full, then memory-budget for each budget (atari_bench's names take '_')."""
     out = {"full": []}
     for b in budgets:
         for m in MEMORIES:
-            out[f"{m}-{b}"] = memory_params(m, b)
+            out[f"{m}{sep}{b}"] = memory_params(m, b)
     return out
+
+
+def atari_bench_cmd(args) -> list[str]:
+    """comper_node's default profile on ALE (atari_100k) through atari_bench: its figure is the mean of the last 10
+    training episodes, as in docs/results.md."""
+    tasks, frames, budgets = DOMAINS["atari"]
+    vs = variants(budgets, "_")
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "atari_bench.py"),
+           "--games", *[t.split("/")[1].split("-")[0] for t in tasks], "--seeds", *map(str, range(args.seeds)),
+           "--frames", str(frames), "--parallel", str(args.parallel), "--variants", *vs,
+           "--out", args.out or str(ROOT / "benchmarks" / "results" / "atari" / args.tag)]
+    for name, ps in vs.items():
+        cmd += ["--variant", f"{name}=comper:" + ",".join(f"{k}={v}" for k, v in ps)]
+    return cmd + (["--report-only"] if args.report_only else [])
 
 
 def learning_bench_cmd(args) -> list[str]:
@@ -79,8 +98,8 @@ def learning_bench_cmd(args) -> list[str]:
 
 # ---------------------------------------------------------------------------------------------- per-run records
 def parse_name(name: str) -> tuple[str, int | None]:
-    """'compact-5000' -> ('compact', 5000); 'full' -> ('full', None)."""
-    mem, _, b = name.partition("-")
+    """'compact-5000' or 'compact_5000' -> ('compact', 5000); 'full' -> ('full', None)."""
+    mem, _, b = name.replace("_", "-").partition("-")
     return mem, (int(b) if b else None)
 
 
@@ -254,9 +273,9 @@ def study_blocks(text: str) -> tuple[str, list[str]]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--domain", choices=sorted(DOMAINS), default="mujoco")
-    ap.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1 (protocol: 5 on MuJoCo)")
+    ap.add_argument("--seeds", type=int, default=None, help="seeds 0..N-1 (protocol: 5 on MuJoCo, 3 on Atari)")
     ap.add_argument("--parallel", type=int, default=2)
-    ap.add_argument("--tag", default="budget-mujoco", help="learning_bench's sweep folder")
+    ap.add_argument("--tag", default=None, help="the sweep's folder name (default budget-<domain>)")
     ap.add_argument("--out", default="", help="learning_bench's --out (default: its own)")
     ap.add_argument("--report-only", action="store_true", help="learning_bench's tables from the runs so far")
     ap.add_argument("--only-print", action="store_true", help="print the command, run nothing")
@@ -265,6 +284,8 @@ def main(argv=None) -> int:
     ap.add_argument("--report", action="store_true",
                     help="the table and plots from docs/results/budget/<domain>/ (rewrites the study's block)")
     args = ap.parse_args(argv)
+    args.seeds = args.seeds or SEEDS[args.domain]
+    args.tag = args.tag or f"budget-{args.domain}"
     if args.export:
         done = export(args.export, args.domain)
         print(f"exported {len(done)} finished run(s) to {RECORDS / args.domain}", flush=True)
@@ -278,7 +299,7 @@ def main(argv=None) -> int:
             STUDY.write_text(text)
             print(f"rewrote the {', '.join(stale)} table of {STUDY.relative_to(ROOT)}", flush=True)
         return 0
-    cmd = learning_bench_cmd(args)
+    cmd = learning_bench_cmd(args) if args.domain == "mujoco" else atari_bench_cmd(args)
     print(" ".join(cmd), flush=True)
     if args.only_print:
         return 0
