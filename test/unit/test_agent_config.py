@@ -46,16 +46,20 @@ def test_comcact_profiles_name_existing_fields_with_a_source_and_thesis_is_the_d
     from comper_agent.core.config import COMCACT_PROFILES
     from comper_agent.nodes.node_config import ComcactNodeConfig
     owner = {f.name for f in dataclasses.fields(ComcactConfig)} | {f.name for f in dataclasses.fields(ComcactNodeConfig)}
-    assert COMCACT_PROFILES["thesis"] == {} and ComcactNodeConfig().profile == "auto"
+    assert ComcactNodeConfig().profile == "auto"
     for profile, values in COMCACT_PROFILES.items():
         for k, (v, source) in values.items():
             assert k in owner, (profile, k)
+            if profile == "thesis":         # its sources are the thesis's own
+                assert source.startswith(("Algorithm 8", "appendix B")), (k, source)
+                continue
             study = source.split(":")[0]
             assert study.startswith("docs/studies/") and (DOC.parents[1] / study).is_file(), (profile, k, source)
 
 
 @pytest.mark.parametrize("name, algorithm, env_id, expected", [
-    ("auto", "comcact", "", "fresh_labels_gate"), ("auto", "ddpg", "", "thesis"), ("thesis", "comcact", "", "thesis"),
+    ("auto", "comcact", "", "fresh_labels_gate"), ("auto", "ddpg", "", "plain"), ("thesis", "comcact", "", "thesis"),
+    ("thesis", "ddpg", "", "thesis"),
     ("auto", "comper", "ALE/Freeway-v5", "atari_100k"), ("auto", "dqn", "CartPole-v1", "classic_control"),
 ])
 def test_auto_is_the_best_measured_profile_of_each_task_family(name, algorithm, env_id, expected):
@@ -75,8 +79,14 @@ def test_atari_100k_is_data_efficient_with_the_gated_10_step_targets():
 def test_the_start_up_log_names_every_difference_from_the_thesis():
     from comper_agent.core.config import COMCACT_PROFILES, thesis_differences
     from comper_agent.nodes.node_config import ComcactNodeConfig
-    assert thesis_differences(ComcactNodeConfig(), ComcactConfig()) == []
+    thesis = COMCACT_PROFILES["thesis"]
+    literal = {k: v for k, (v, _) in thesis.items()}
+    node_keys = {f.name for f in dataclasses.fields(ComcactNodeConfig)}
+    assert thesis_differences(ComcactNodeConfig(**{k: v for k, v in literal.items() if k in node_keys}),
+                              ComcactConfig(**{k: v for k, v in literal.items() if k not in node_keys}),
+                              thesis=thesis) == []
     best = thesis_differences(ComcactNodeConfig(restore_batch=True, runs_root="elsewhere"),
-                              ComcactConfig(label_critic="target", qt_step_gate=True, seed=3))
-    assert {d.split("=")[0] for d in best} == set(COMCACT_PROFILES["fresh_labels_gate"])     # not paths or seeds
-    assert "label_critic='target' (thesis: 'online')" in best
+                              ComcactConfig(label_critic="target", qt_step_gate=True, seed=3), thesis=thesis)
+    # the profile's three values and the three engineering settings every profile but thesis keeps; not paths or seeds
+    assert {d.split("=")[0] for d in best} == set(COMCACT_PROFILES["fresh_labels_gate"]) | set(thesis)
+    assert "label_critic='target' (thesis: 'online')" in best and "batch_norm=False (thesis: True)" in best

@@ -96,7 +96,7 @@ def test_help_lists_every_node_and_learner_parameter(node_cls, cfg_cls):
     ("comper_node", ["-p", "reducer:=x"], "parameter 'reducer': 'x' is not one of"),
     ("comper_node", ["-p", "algorithm:=comper", "-p", "reducer:=memory"], "comper needs QT"),
     ("comper_node", ["-p", "n_step:=3", "-p", "qt_label:=q_sa"], "n_step:=3 needs qt_label:=next_value"),
-    ("comcact_node", ["-p", "profile:=best"], "unknown profile 'best'; one of auto, thesis, fresh_labels_gate"),
+    ("comcact_node", ["-p", "profile:=best"], "unknown profile 'best'; one of auto, thesis, plain, fresh_labels_gate"),
     ("comcact_node", ["-p", "algorithm:=ddpg", "-p", "profile:=fresh_labels_gate"],
      "profile:=fresh_labels_gate sets COMCACT's value labels and QT step, which ddpg does not have"),
 ])
@@ -172,8 +172,10 @@ def test_graceful_node_ignores_repeated_signals_and_a_stuck_close_times_out():
     (ComperNode, {"env_id": "ALE/Freeway-v5", "profile": "thesis"}, {"reduce_batch": 1_000, "n_step": 1}),  # Table 34
     (ComcactNode, {}, {"restore_batch": True, "label_critic": "target", "qt_step_gate": True,
                        "profile": "fresh_labels_gate"}),
-    (ComcactNode, {"algorithm": "ddpg"}, {"restore_batch": False, "profile": "thesis"}),
-    (ComcactNode, {"profile": "thesis"}, {"restore_batch": False, "label_critic": "online", "qt_step_gate": False}),
+    (ComcactNode, {"algorithm": "ddpg"}, {"restore_batch": False, "batch_norm": False, "profile": "plain"}),
+    (ComcactNode, {"profile": "thesis"}, {"restore_batch": False, "label_critic": "online", "qt_step_gate": False,
+                                          "batch_norm": True, "store_every": 1, "reduce_every": 1}),
+    (ComcactNode, {}, {"batch_norm": False, "store_every": 10, "reduce_every": 10}),
     (ComcactNode, {"label_critic": "online"}, {"restore_batch": True, "label_critic": "online", "qt_step_gate": True}),
 ])
 def test_a_profile_sets_node_and_learner_parameters_and_the_command_line_still_wins(node_cls, given, expected):

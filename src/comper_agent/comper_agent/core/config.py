@@ -409,9 +409,17 @@ COMPER_PROFILES["atari_100k"] = {
 
 # comcact_node profiles. Unlike COMPER's, their sources are this suite's own benchmark runs (50,000 steps, 3-5 seeds,
 # 10 evaluation episodes every 5,000; docs/results.md)
-#: profile -> {field: (value, source)}, as COMPER_PROFILES; thesis = the defaults (Algorithm 8, appendix B)
+#: profile -> {field: (value, source)}, as COMPER_PROFILES. The parameter defaults are Algorithm 8 and appendix B with
+#: this suite's three engineering settings (plain MLPs, a store and a reduction every 10 steps: `plain`, the DDPG
+#: baseline's profile); `thesis` puts those three back to the text
 COMCACT_PROFILES: dict[str, dict[str, tuple]] = {
-    "thesis": {},
+    "thesis": {
+        "batch_norm": (True, "appendix B: batch normalisation in actor and critic"),
+        "store_every": (1, "Algorithm 8: each transition is stored at its step"),
+        "reduce_every": (1, "Algorithm 8 lines 27-28: a reduction every iteration"),
+    },
+    # the defaults; the DDPG baseline's profile (resolve_comcact_profile)
+    "plain": {},
     # the default of algorithm comcact (resolve_comcact_profile)
     "fresh_labels_gate": {
         "restore_batch": (True, "docs/studies/comcact-four-task-ablation.md: with label_critic target, above the "
@@ -434,47 +442,52 @@ def resolve_profile(name: str, env_id: str) -> str:
 
 
 def resolve_comcact_profile(name: str, algorithm: str) -> str:
-    """comcact_node's ``profile``: auto -> fresh_labels_gate for comcact, thesis for the DDPG baseline (the
+    """comcact_node's ``profile``: auto -> fresh_labels_gate for comcact, plain for the DDPG baseline (the other
     profiles set COMCACT's labels and QT step, which ddpg does not have)."""
     if name == "auto":
-        return "fresh_labels_gate" if algorithm == "comcact" else "thesis"
+        return "fresh_labels_gate" if algorithm == "comcact" else "plain"
     if name not in COMCACT_PROFILES:
         raise ValueError(f"unknown profile {name!r}; one of auto, {', '.join(COMCACT_PROFILES)}")
-    if algorithm != "comcact" and name != "thesis":
+    if algorithm != "comcact" and name not in ("thesis", "plain"):
         raise ValueError(f"profile:={name} sets COMCACT's value labels and QT step, which ddpg does not have; "
-                         "use profile:=thesis (or auto) with algorithm:=ddpg")
+                         "use profile:=plain (or auto, or thesis) with algorithm:=ddpg")
     return name
 
 
 def profile_table_markdown(node_config=None, node: str = "comper") -> str:
     """A markdown table of a node's profiles (node: comper -> COMPER_PROFILES over ComperConfig, comcact ->
-    COMCACT_PROFILES over ComcactConfig): each value that differs from the thesis defaults and its source.
+    COMCACT_PROFILES over ComcactConfig): each value that differs from the parameter defaults and its source.
     node_config: the node's parameter class, for profile values that are node parameters."""
     from comper_msgs_py.params import spec_of
-    profiles, learner, thesis = {"comper": (COMPER_PROFILES, ComperConfig, "Algorithm 7, Tables 32-35"),
-                                 "comcact": (COMCACT_PROFILES, ComcactConfig, "Algorithm 8, appendix B")}[node]
+    profiles, learner, empty = {
+        "comper": (COMPER_PROFILES, ComperConfig, "Algorithm 7, Tables 32-35"),
+        "comcact": (COMCACT_PROFILES, ComcactConfig, "Algorithm 8 and appendix B with the engineering settings "
+                                                     "the thesis profile puts back")}[node]
     defaults = {f.name: d for f, d, _ in spec_of(node_config)} if node_config is not None else {}
     defaults.update({f.name: d for f, d, _ in spec_of(learner)})
-    rows = ["| profile | parameter | value | thesis default | source |", "|---|---|---|---|---|"]
+    rows = ["| profile | parameter | value | default | source |", "|---|---|---|---|---|"]
     for name, values in profiles.items():
         if not values:
-            rows.append(f"| `{name}` | (all) | the defaults | | {thesis} |")
+            rows.append(f"| `{name}` | (all) | the defaults | | {empty} |")
         for k, (v, src) in values.items():
             rows.append(f"| `{name}` | `{k}` | `{v}` | `{defaults[k]}` | {src} |")
     return "\n".join(rows) + "\n"
 
 
-def thesis_differences(*configs) -> list[str]:
+def thesis_differences(*configs, thesis: dict | None = None) -> list[str]:
     """What a run does differently from ``profile:=thesis``, for the start-up log: each parameter with a thesis
-    value whose value is not the thesis profile's ('name=value (thesis: default)'), whether a profile or the command
+    value whose value is not the thesis profile's ('name=value (thesis: value)'), whether a profile or the command
     line set it. The thesis profile's own corrections of the thesis text are listed in method.md 6.
-    configs: config instances (node parameters, learner hyper-parameters)."""
+    configs: config instances (node parameters, learner hyper-parameters); thesis: the node's thesis profile
+    ({field: (value, source)}; its values replace the parameter defaults)."""
     from comper_msgs_py.params import spec_of
     out = []
     for cfg in configs:
         for f, default, _ in spec_of(type(cfg)):
             if not (f.metadata.get("thesis") or f.metadata.get("deviation")):
                 continue            # engineering settings (paths, threads, timeouts) have no thesis value
+            if thesis and f.name in thesis:
+                default = thesis[f.name][0]
             value = getattr(cfg, f.name)
             same = (list(value) == list(default)) if isinstance(value, (list, tuple)) else value == default
             if not same:

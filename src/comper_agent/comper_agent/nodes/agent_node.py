@@ -320,7 +320,7 @@ class AgentNode(Node):
         start_step = self.step
         self.log.info(f"{self._start_line()}; run dir {run.dir.path}  (Ctrl-C stops and saves a checkpoint)")
         if self.PROFILES:
-            diffs = thesis_differences(self.p, self.cfg)
+            diffs = thesis_differences(self.p, self.cfg, thesis=self.PROFILES["thesis"])
             self.log.info(f"profile {self.profile} (profile:=thesis is the thesis); differs from it in {len(diffs)} "
                           "values: " + ("; ".join(diffs) or "none"))
         if not self.scalars.available and p.tensorboard:

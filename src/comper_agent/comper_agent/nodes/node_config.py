@@ -195,9 +195,10 @@ class ComcactNodeConfig(AgentRunConfig):
         "the sim node; external: must match the running sim node)")
     profile: str = param(
         "auto", "named set of learner defaults (core/config.py COMCACT_PROFILES; -p name:=value still wins): "
-        "thesis = Algorithm 8 and appendix B; fresh_labels_gate = restore_batch true, label_critic target and "
-        "qt_step_gate true (value labels that follow the target critic, and the QT step only where QT is closer to "
-        "the DDPG target than the critic); auto = fresh_labels_gate for comcact, thesis for ddpg",
+        "thesis = Algorithm 8 and appendix B as written (batch norm, a store and a reduction every step); plain = the "
+        "defaults (no batch norm, store and reduce every 10); fresh_labels_gate = plain with restore_batch true, "
+        "label_critic target and qt_step_gate true (value labels that follow the target critic, and the QT step only "
+        "where QT is closer to the DDPG target than the critic); auto = fresh_labels_gate for comcact, plain for ddpg",
         thesis="thesis", choices=("auto", *COMCACT_PROFILES))
     total_steps: int = param(50_000, "agent (environment) steps of the run", thesis="50,000 (chapter 6)",
                              minimum=1)
