@@ -109,22 +109,29 @@ def test_decisions_equal_brute_force_on_standardised_keys_across_reindexing():
     assert updates[-1] >= 3 and updates == sorted(updates)
 
 
-def test_snapshot_and_wal_replay_rebuild_the_normaliser(tmp_path):
+def _killed_and_recovered(cfg, seed, batches, size, reduce_every, max_sets):
+    """A memory after ``batches`` stores (a reduction every ``reduce_every``) and the one a restart builds from its
+    last snapshot and the WAL after it (what a SIGKILL leaves); both decide a new store alike."""
     from test_memory_storage import assert_same_state
-    cfg = MemoryConfig(storage_dir=str(tmp_path), snapshot_every=5, delta=0.3, key_normalisation="running",
-                       index_min_train=16)
     mem = CompactMemory(cfg)
-    rng = np.random.default_rng(3)
-    for i in range(12):
-        mem.store(vec(rng, 50))
-        if i % 3 == 2:
-            mem.reduce(max_sets=40)
+    rng = np.random.default_rng(seed)
+    for i in range(batches):
+        mem.store(vec(rng, size))
+        if i % reduce_every == reduce_every - 1:
+            mem.reduce(max_sets=max_sets)
     assert mem.stats()["key_norm_updates"] >= 2
-    # "SIGKILL": a snapshot plus the WAL after it is all that is left
     again = CompactMemory(cfg)
     assert_same_state(mem, again)
     probe = vec(rng, 30)
     assert np.array_equal(mem.store(probe).identity_ids, again.store(probe).identity_ids)
+    return mem
+
+
+def test_snapshot_and_wal_replay_rebuild_the_normaliser(tmp_path):
+    from test_memory_storage import assert_same_state
+    cfg = MemoryConfig(storage_dir=str(tmp_path), snapshot_every=5, delta=0.3, key_normalisation="running",
+                       index_min_train=16)
+    mem = _killed_and_recovered(cfg, 3, 12, 50, 3, 40)
     path = str(tmp_path / "snap")
     mem.save_snapshot(path)
     third = CompactMemory(MemoryConfig(delta=0.3, key_normalisation="running", index_min_train=16))
@@ -160,20 +167,10 @@ def test_nn_quantile_puts_delta_at_the_quantile_of_nearest_neighbour_distances(m
 
 
 def test_nn_quantile_survives_snapshot_and_wal_replay_and_must_match(tmp_path):
-    from test_memory_storage import assert_same_state
     cfg = MemoryConfig(storage_dir=str(tmp_path), snapshot_every=4, delta=1.0, key_normalisation="running",
                        delta_rule="nn_quantile", delta_quantile=0.1, index_min_train=16)
-    mem = CompactMemory(cfg)
-    rng = np.random.default_rng(5)
-    for i in range(10):
-        mem.store(vec(rng, 120))
-        if i % 2 == 1:
-            mem.reduce(max_sets=100)
-    assert mem.stats()["key_norm_updates"] >= 2 and mem.stats()["similarity_hits"] > 0
-    again = CompactMemory(cfg)
-    assert_same_state(mem, again)
-    probe = vec(rng, 30)
-    assert np.array_equal(mem.store(probe).identity_ids, again.store(probe).identity_ids)
+    mem = _killed_and_recovered(cfg, 5, 10, 120, 2, 100)
+    assert mem.stats()["similarity_hits"] > 0
     path = str(tmp_path / "snap")
     mem.save_snapshot(path)
     with pytest.raises(SnapshotError, match="key normalisation"):
