@@ -5,7 +5,7 @@ frames, 56 KB per identity, although consecutive transitions share all but one f
 s' holds s's last three frames. Like Dopamine's circular replay (and DQN's original buffer), the memory then
 keeps every distinct frame once and a representative keeps the ids of its frames (:class:`FrameStore`); a
 stack is rebuilt by gathering its ids. Unlike a ring indexed by step, frames are found by their content
-(a 64-bit digest, confirmed byte for byte), so nothing is assumed about how the client stacks or pads at an
+(a CRC-32 digest, confirmed byte for byte), so nothing is assumed about how the client stacks or pads at an
 episode start: the rebuilt observation is byte-identical to the one stored, a stack never mixes two episodes
 (it holds the frames that were sent for it), and a frame seen again (an episode's first frame) is kept once.
 
@@ -13,11 +13,13 @@ The switch is :func:`frame_layout`, the one place that decides from ``frame_stor
 (MemoryConfig) and the observations' shape and dtype; ``None`` keeps the observations in the slot table as
 before (vector observations, single 2-D frames under ``auto``).
 
-Frames live in blocks that are never copied when the store grows (a block of each doubling of the capacity;
-untouched pages of the newest block are not resident), so a million frames never need twice their size.
+Frames live in one private anonymous memory map, resized in place when the store grows (mremap: nothing copied,
+pages resident only once written), so a million frames never need twice their size, and a gather is one
+``np.take``.
 """
 from __future__ import annotations
 
+import mmap
 import sys
 import zlib
 from dataclasses import dataclass
@@ -25,11 +27,13 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["FrameLayout", "FrameStore", "frame_layout", "FRAME_STORE_MODES", "AUTO_MIN_FRAME_BYTES",
-           "FRAME_BLOCK"]
+           "FRAMES_ARRAY"]
 
 FRAME_STORE_MODES = ("auto", "on", "off")
 AUTO_MIN_FRAME_BYTES = 1024      # auto: a frame must hold at least this many bytes (refs and index cost ~120 B)
-FRAME_BLOCK = 1024               # frames in the first block; later blocks double the capacity
+FRAME_BLOCK = 1024               # the smallest growth of the frames' map (frames)
+FRAME_GROWTH_MAX = 1 << 17       # the largest (0.9 GB of 84x84 frames): the map's size stays near its use
+FRAMES_ARRAY = "frames"          # the snapshot array of the frame store
 _DICT_ENTRY_BYTES = 64           # a digest -> id entry's two int objects (the table: sys.getsizeof)
 
 
@@ -87,8 +91,8 @@ def frame_layout(mode: str, axis: int, obs_shape: tuple, dtype) -> FrameLayout |
 
 
 def _digest(frame: np.ndarray) -> int:
-    view = memoryview(frame).cast("B")
-    return (zlib.crc32(view) << 32) | zlib.adler32(view)
+    """32 bits of CRC (a frame sharing it with other bytes is told apart by comparing them)."""
+    return zlib.crc32(memoryview(frame).cast("B"))
 
 
 class FrameStore:
@@ -101,9 +105,9 @@ class FrameStore:
     def __init__(self, frame_shape: tuple, dtype):
         self.frame_shape = tuple(frame_shape)
         self.dtype = np.dtype(dtype)
-        self._blocks: list[np.ndarray] = []
-        self._starts = np.zeros(0, np.int64)
-        self.cap = 0                     # frames the blocks hold
+        self.frame_bytes = self.dtype.itemsize * int(np.prod(self.frame_shape, dtype=np.int64))
+        self._mm: mmap.mmap | None = None
+        self.frames = np.zeros((0, *self.frame_shape), self.dtype)   # a view of _mm: [cap, *frame_shape]
         self.hi = 0                      # frame ids ever handed out (ids >= hi were never written)
         self.refs = np.zeros(0, np.int64)
         self.digests = np.zeros(0, np.uint64)
@@ -112,36 +116,41 @@ class FrameStore:
         self._more: dict[int, list[int]] = {}   # other frames with a digest already in _by_digest (rare)
 
     @property
+    def cap(self) -> int:
+        return len(self.frames)
+
+    @property
     def n_live(self) -> int:
         return self.hi - len(self.free)
 
-    # ------------------------------------------------------------------ blocks
-    def _add_block(self, block: np.ndarray) -> None:
-        self._blocks.append(block)
-        self._starts = np.append(self._starts, self.cap)
-        self.cap += len(block)
-        if len(self.refs) < self.cap:
-            grow = self.cap - len(self.refs)
-            self.refs = np.concatenate([self.refs, np.zeros(grow, np.int64)])
-            self.digests = np.concatenate([self.digests, np.zeros(grow, np.uint64)])
-
-    def _frame(self, fid: int) -> np.ndarray:
-        j = int(np.searchsorted(self._starts, fid, side="right")) - 1
-        return self._blocks[j][fid - int(self._starts[j])]
+    # ------------------------------------------------------------------ the frames' memory
+    def _grow(self, need: int) -> None:
+        """Room for ``need`` frames: the private anonymous map is resized in place (mremap: nothing copied, pages
+        resident only once written); copied into a new map only while a view of the old one is held elsewhere
+        (a snapshot's arrays)."""
+        cap = max(need, self.cap + min(max(self.cap, FRAME_BLOCK), FRAME_GROWTH_MAX))
+        size = max(1, cap * self.frame_bytes)
+        old, self.frames = self.frames, None
+        try:
+            if self._mm is None:
+                raise BufferError
+            self._mm.resize(size)
+        except BufferError:
+            mm = mmap.mmap(-1, size, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+            if len(old):
+                np.frombuffer(mm, self.dtype, count=old.size).reshape(old.shape)[:] = old
+            self._mm = mm
+        del old
+        self.frames = np.frombuffer(self._mm, self.dtype, count=cap * self.frame_bytes // self.dtype.itemsize
+                                    ).reshape(cap, *self.frame_shape)
+        grow = cap - len(self.refs)
+        self.refs = np.concatenate([self.refs, np.zeros(grow, np.int64)])
+        self.digests = np.concatenate([self.digests, np.zeros(grow, np.uint64)])
 
     def gather(self, ids: np.ndarray) -> np.ndarray:
         """Frames of ``ids`` (any shape): [*ids.shape, *frame_shape]."""
         ids = np.asarray(ids, dtype=np.int64)
-        flat = ids.reshape(-1)
-        out = np.empty((len(flat), *self.frame_shape), self.dtype)
-        if len(self._blocks) == 1:
-            np.take(self._blocks[0], flat, axis=0, out=out)
-        elif len(flat):
-            b = np.searchsorted(self._starts, flat, side="right") - 1
-            for j in np.unique(b):
-                m = b == j
-                out[m] = self._blocks[j][flat[m] - self._starts[j]]
-        return out.reshape(*ids.shape, *self.frame_shape)
+        return np.take(self.frames, ids.reshape(-1), axis=0).reshape(*ids.shape, *self.frame_shape)
 
     # ------------------------------------------------------------------ references
     def _find(self, digest: int, frame: np.ndarray) -> int:
@@ -150,7 +159,7 @@ class FrameStore:
             return -1
         raw = frame.tobytes()
         for cand in [fid, *self._more.get(digest, ())]:
-            if self._frame(cand).tobytes() == raw:
+            if self.frames[cand].tobytes() == raw:
                 return cand
         return -1
 
@@ -174,28 +183,35 @@ class FrameStore:
 
     def intern(self, frames: np.ndarray) -> np.ndarray:
         """Ids of ``frames`` ([m, *frame_shape], C-contiguous), one more reference each (a row repeated counts
-        each time)."""
+        each time). Rows repeated within the call (a stack's frames recur in the next state and the next
+        transition) are told apart by digest and one vectorised byte comparison, then looked up once."""
         m = len(frames)
+        if self.hi + m > self.cap and len(self.free) < m:
+            self._grow(self.hi + m)
+        digests = np.fromiter((_digest(f) for f in frames), np.uint64, m)
+        _, first, inv = np.unique(digests, return_index=True, return_inverse=True)
+        rows = frames.reshape(m, -1)
+        same = (rows == rows[first[inv]]).all(axis=1)        # False only for a digest shared by other bytes
         ids = np.empty(m, np.int64)
-        for i in range(m):
-            f = frames[i]
-            d = _digest(f)
-            fid = self._find(d, f)
-            if fid < 0:
-                if self.free:
-                    fid = self.free.pop()
-                else:
-                    if self.hi == self.cap:
-                        self._add_block(np.empty((max(FRAME_BLOCK, self.cap), *self.frame_shape), self.dtype))
-                    fid = self.hi
-                    self.hi += 1
-                j = int(np.searchsorted(self._starts, fid, side="right")) - 1
-                self._blocks[j][fid - int(self._starts[j])] = f
-                self.digests[fid] = d
-                self._index(d, fid)
-            ids[i] = fid
+        ids_first = np.array([self._intern_one(int(digests[i]), frames[i]) for i in first.tolist()], np.int64)
+        ids[:] = ids_first[inv] if len(first) else ids
+        for i in np.flatnonzero(~same).tolist():
+            ids[i] = self._intern_one(int(digests[i]), frames[i])
         np.add.at(self.refs, ids, 1)
         return ids
+
+    def _intern_one(self, d: int, f: np.ndarray) -> int:
+        fid = self._find(d, f)
+        if fid < 0:
+            if self.free:
+                fid = self.free.pop()
+            else:
+                fid = self.hi
+                self.hi += 1
+            self.frames[fid] = f
+            self.digests[fid] = d
+            self._index(d, fid)
+        return fid
 
     def release(self, ids: np.ndarray) -> None:
         """One reference fewer for each of ``ids``; frames left without any are freed."""
@@ -203,51 +219,34 @@ class FrameStore:
         if not len(ids):
             return
         np.subtract.at(self.refs, ids, 1)
-        for fid in np.unique(ids)[self.refs[np.unique(ids)] == 0].tolist():
+        u = np.unique(ids)
+        for fid in u[self.refs[u] == 0].tolist():
             self._unindex(int(self.digests[fid]), fid)
             self.free.append(fid)
 
     # ------------------------------------------------------------------ snapshots
     def arrays(self) -> dict[str, np.ndarray]:
-        """The written part of each block (views: a snapshot streams them, no copy); free frames included."""
-        out = {}
-        for j, block in enumerate(self._blocks):
-            start = int(self._starts[j])
-            if start >= self.hi:
-                break
-            out[f"frames_{j:03d}"] = block[:self.hi - start]
-        return out
+        """The frames written, free ones included (a view: a snapshot streams it, no copy)."""
+        return {FRAMES_ARRAY: self.frames[:self.hi]}
 
-    @staticmethod
-    def block_names(arrays: dict) -> list[str]:
-        return sorted(k for k in arrays if k.startswith("frames_"))
-
-    def load(self, arrays: dict[str, np.ndarray], ref_ids: np.ndarray) -> None:
-        """Fill an empty store from snapshot blocks (adopted, not copied) and every reference the slots hold;
-        ValueError if they do not fit together."""
-        for name in self.block_names(arrays):
-            block = arrays[name]
-            if block.dtype != self.dtype or tuple(block.shape[1:]) != self.frame_shape:
-                raise ValueError(f"{name} holds {block.dtype}{list(block.shape[1:])} frames, the memory "
-                                 f"{self.dtype}{list(self.frame_shape)}")
-            self._add_block(np.ascontiguousarray(block))
-        self.hi = self.cap
+    def load(self, frames: np.ndarray, ref_ids: np.ndarray) -> None:
+        """Fill an empty store from a snapshot's frames and every reference its slots hold (checked before:
+        slots.check_snapshot_obs)."""
+        self._grow(len(frames))
+        self.frames[:len(frames)] = frames
+        self.hi = len(frames)
         ref_ids = np.asarray(ref_ids, dtype=np.int64).reshape(-1)
-        if len(ref_ids) and (ref_ids.min() < 0 or ref_ids.max() >= self.hi):
-            raise ValueError(f"frame references outside the {self.hi} frames of the snapshot")
         self.refs[:] = 0
         self.refs[:self.hi] = np.bincount(ref_ids, minlength=self.hi)
-        for fid in range(self.hi):
-            if self.refs[fid]:
-                d = _digest(self._frame(fid))
-                self.digests[fid] = d
-                self._index(d, fid)
+        for fid in np.flatnonzero(self.refs[:self.hi]).tolist():
+            d = _digest(self.frames[fid])
+            self.digests[fid] = d
+            self._index(d, fid)
         self.free = np.flatnonzero(self.refs[:self.hi] == 0)[::-1].tolist()
 
     def bytes_used(self) -> int:
-        """Frames written (untouched block pages are not resident), per-frame counts and the digest index."""
-        return int(self.hi * self.dtype.itemsize * int(np.prod(self.frame_shape, dtype=np.int64))
-                   + self.refs.nbytes + self.digests.nbytes + 8 * len(self.free)
+        """Frames written (pages of the map never written are not resident), per-frame counts, the digest index."""
+        return int(self.hi * self.frame_bytes + self.refs.nbytes + self.digests.nbytes + 8 * len(self.free)
                    + sys.getsizeof(self._by_digest) + _DICT_ENTRY_BYTES * len(self._by_digest))
 
 

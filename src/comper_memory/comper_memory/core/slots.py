@@ -24,7 +24,7 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-from .frames import FrameLayout, FrameStore
+from .frames import FRAMES_ARRAY, FrameLayout, FrameStore
 from .key_norm import KeyNormaliser
 from .keys import transition_keys
 
@@ -275,7 +275,7 @@ class SlotTable:
 
     def rows(self) -> dict[str, np.ndarray]:
         """The snapshot columns of the live identities, ordered by id; with a frame layout the frame ids and
-        the frame store's blocks instead of the observations."""
+        the frame store's frames instead of the observations."""
         slots = self.slots_sorted
         # snapshot format unchanged: hist_total == count
         out = {name: self.a["count" if name == "hist_total" else name][slots] for name in SLOT_FIELDS}
@@ -297,7 +297,7 @@ class SlotTable:
             if name != "hist_total":  # equals count (kept in the snapshot for its format)
                 self.a[name][slots] = arrays[name]
         if self.layout is not None and self.layout == written:     # frames as written: adopted
-            self.frames.load(arrays, np.concatenate([arrays[f].reshape(-1) for f in FRAME_FIELDS]))
+            self.frames.load(arrays[FRAMES_ARRAY], np.concatenate([arrays[f].reshape(-1) for f in FRAME_FIELDS]))
             for f in FRAME_FIELDS:
                 self.a[f][slots] = arrays[f]
         elif self.layout is None and written is None:
@@ -321,7 +321,7 @@ def _snapshot_obs(arrays: dict[str, np.ndarray], layout: FrameLayout | None):
     if layout is None:
         return lambda i, j: tuple(arrays[f][i:j] for f in OBS_FIELDS)
     store = FrameStore(layout.frame_shape, layout.dtype)
-    store.load(arrays, np.concatenate([arrays[f].reshape(-1) for f in FRAME_FIELDS]))
+    store.load(arrays[FRAMES_ARRAY], np.concatenate([arrays[f].reshape(-1) for f in FRAME_FIELDS]))
     return lambda i, j: tuple(layout.join(store.gather(arrays[f][i:j])) for f in FRAME_FIELDS)
 
 
@@ -336,11 +336,10 @@ def check_snapshot_obs(arrays: dict[str, np.ndarray], written: FrameLayout | Non
         return None
     if any(arrays[f].shape != (n, written.stack) or arrays[f].dtype.kind not in "iu" for f in fields):
         return f"frame references are not {n} x {written.stack} integers"
-    blocks = FrameStore.block_names(arrays)
-    if any(arrays[b].dtype != np.dtype(written.dtype) or tuple(arrays[b].shape[1:]) != written.frame_shape
-           for b in blocks):
+    frames = arrays.get(FRAMES_ARRAY)
+    if frames is None or frames.dtype != np.dtype(written.dtype) or tuple(frames.shape[1:]) != written.frame_shape:
         return f"frames are not {np.dtype(written.dtype)}{list(written.frame_shape)}"
-    total = sum(len(arrays[b]) for b in blocks)
+    total = len(frames)
     if n and any(arrays[f].size and (arrays[f].min() < 0 or arrays[f].max() >= total) for f in fields):
         return f"frame references point outside its {total} frames"
     return None
