@@ -29,8 +29,8 @@ class MemoryConfig:
         "probability rtm_capacity / j, in place of a uniformly chosen one), drawn from removal_seed and the "
         "identity's id, so a WAL replay evicts the same ones; coverage = where the keys are densest (of 4 "
         "uniformly drawn candidates per identity to evict, at least 64, the one nearest to a uniform sample of up "
-        "to 2,048 live identities leaves, in turn; de Bruin et al., JMLR 2018), drawn from removal_seed and the "
-        "store's first new id",
+        "to 2,048 live identities, fewer for long keys, leaves, in turn; de Bruin et al., JMLR 2018), drawn from "
+        "removal_seed and the store's first new id",
         thesis="not given (the thesis never fills RTM)", choices=("lru", "fifo", "reservoir", "coverage"))
     removal_seed: int = param(0, "seed of the reservoir and coverage removal draws", minimum=0)
     delta_rule: str = param(

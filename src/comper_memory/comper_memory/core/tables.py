@@ -227,6 +227,8 @@ class Remover:
     #: coverage: candidates drawn per identity to evict (at least COVERAGE_MIN_CANDIDATES), and the most key values
     #: the reference sample may hold (2,048 identities of MuJoCo keys, ~300 of 4-frame Atari keys)
     COVERAGE_CANDIDATES, COVERAGE_MIN_CANDIDATES, COVERAGE_REF_VALUES, COVERAGE_MAX_REFS = 4, 64, 1 << 24, 2048
+    #: distances on at most this many key dimensions (every k-th of a longer key: image keys)
+    COVERAGE_MAX_DIMS = 1024
 
     def __init__(self, table: SlotTable, tm: TransitionTable, rtm: ReducedTable,
                  rtm_capacity: int, tm_capacity: int, removal: str = "lru", seed: int = 0):
@@ -282,7 +284,8 @@ class Remover:
         """The ``over`` slots the coverage rule lets go: candidates drawn uniformly from the live identities
         (COVERAGE_CANDIDATES per identity to evict, at least COVERAGE_MIN_CANDIDATES), each with the squared
         distance of its key (as the index sees it) to the nearest of a uniform reference sample of live identities
-        (up to COVERAGE_MAX_REFS, fewer for long keys); the candidate with the nearest neighbour leaves, in
+        (up to COVERAGE_MAX_REFS, fewer for long keys; distances on every k-th dimension of keys longer than
+        COVERAGE_MAX_DIMS, e.g. the pixels of stacked frames); the candidate with the nearest neighbour leaves, in
         turn, and a reference that left no longer counts as a neighbour. So identities leave where the keys are
         densest and the memory keeps its spread (de Bruin et al., JMLR 2018). Draws from ``seed`` and the first
         new id: a WAL replay evicts the same ones."""
@@ -296,8 +299,9 @@ class Remover:
         key_dim = self.table.keys_of_slots(slots[cand[:1]]).shape[1]
         r = min(n, self.COVERAGE_MAX_REFS, max(self.COVERAGE_MIN_CANDIDATES, self.COVERAGE_REF_VALUES // key_dim))
         refs = np.sort(rng.choice(n, size=r, replace=False))
-        kc = self.table.keys_of_slots(slots[cand]).astype(np.float64)
-        kr = self.table.keys_of_slots(slots[refs]).astype(np.float64)
+        cols = slice(None, None, -(-key_dim // self.COVERAGE_MAX_DIMS))   # every k-th dimension of a long key
+        kc = self.table.keys_of_slots(slots[cand])[:, cols].astype(np.float64)
+        kr = self.table.keys_of_slots(slots[refs])[:, cols].astype(np.float64)
         d2 = (kc * kc).sum(1)[:, None] + (kr * kr).sum(1)[None, :] - 2.0 * kc @ kr.T
         d2[cand[:, None] == refs[None, :]] = np.inf            # not its own neighbour
         out = np.zeros(k, bool)
