@@ -2,10 +2,13 @@
 """Memory per transition of stacked Atari observations: whole stacks per identity (before), the frame store
 (after, ``frame_store`` auto) and a Dopamine-style anchor, measured in one run (issue 59, item 4).
 
-1. Plays ``--sizes``' largest number of steps with the suite's own ALE pipeline (comper_sim SimBridge, method.md
-   section 5 protocol, uniformly random actions) and records the stream once to ``--workdir``: each frame once in
-   order of play (an episode's first frame, then one per step) and per transition its frame's position and its
-   episode's first position.
+1. Plays ``--record`` steps (default: the largest size) with the suite's own ALE pipeline (comper_sim SimBridge,
+   method.md section 5 protocol, uniformly random actions) and records the stream once to ``--workdir``: each frame
+   once in order of play (an episode's first frame, then one per step) and per transition its frame's position
+   and its episode's first position. Sizes above ``--record`` replay the recording again, each pass's frames
+   marked with the pass number in their top-left 8 pixels (0 or 255 each), so no frame of one pass equals one of
+   another (every pass is new to each variant, none is found again by the frame store); the recording's last
+   transition counts as truncated, so a pass starts a new episode.
 2. For each size and variant, one fresh process reads the stream in batches of ``--batch`` and builds the
    [4, 84, 84] stacks the sim builds (oldest first, an episode's first stack filled with its first frame), then:
    * ``before``: CompactMemory with ``frame_store`` off (each identity holds s and s' whole, today's layout);
@@ -80,9 +83,25 @@ class Stream:
     def __init__(self, workdir: str):
         z = np.load(os.path.join(workdir, "stream.npz"))
         self.a = {k: z[k] for k in z.files}
+        self.a["truncated"][-1] = True
+        self.n = len(self.a["pos"])
         self.f = open(os.path.join(workdir, "frames.u8"), "rb")
 
     def batch(self, lo: int, hi: int):
+        from comper_msgs_py.arrays import Transitions
+        p, j = divmod(lo, self.n)
+        if j + hi - lo > self.n:                            # across the end of a pass
+            return Transitions.concatenate([self.batch(lo, lo + self.n - j), self.batch(lo + self.n - j, hi)])
+        t = self._batch(j, j + hi - lo)
+        if p:
+            mark = np.where((p >> np.arange(8)) & 1, 255, 0).astype(np.uint8)
+            t.states[..., 0, :8] = mark
+            t.next_states[..., 0, :8] = mark
+        return Transitions(t.states, t.actions, t.rewards, t.next_states, t.terminated, t.truncated,
+                           value_labels=t.value_labels, episode_ids=t.episode_ids,
+                           steps=np.arange(lo, hi, dtype=np.uint64))
+
+    def _batch(self, lo: int, hi: int):
         from comper_msgs_py.arrays import Transitions
         a = self.a
         pos, start = a["pos"][lo:hi], a["start"][lo:hi]
@@ -262,6 +281,8 @@ def main() -> None:
     ap.add_argument("--game", default="ALE/Seaquest-v5")
     ap.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000], help="transitions stored")
     ap.add_argument("--before-max", type=int, default=100_000, help="largest size 'before' is measured at")
+    ap.add_argument("--record", type=int, default=0, help="ALE steps played (0: the largest size; larger sizes "
+                    "replay them, marked per pass)")
     ap.add_argument("--variants", nargs="+", default=["anchor", "before", "after"])
     ap.add_argument("--batch", type=int, default=64, help="transitions per store call")
     ap.add_argument("--sample-calls", type=int, default=300)
@@ -275,7 +296,7 @@ def main() -> None:
         print(json.dumps(run_variant(args.run_variant, args.n, args)), flush=True)
         return
     os.makedirs(args.workdir, exist_ok=True)
-    need = max(args.sizes)
+    need = args.record or max(args.sizes)
     have = os.path.join(args.workdir, "stream.npz")
     if not os.path.exists(have) or len(np.load(have)["pos"]) < need:
         t0 = time.perf_counter()

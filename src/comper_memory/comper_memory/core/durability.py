@@ -22,6 +22,7 @@ from comper_msgs_py.arrays import Transitions
 
 from . import storage as st
 from .config import MemoryConfig
+from .frames import FRAMES_ARRAY, FrameLayout, pack_obs, unpack_obs
 from .slots import SLOT_FIELDS
 
 __all__ = ["Durability", "COUNTERS", "check_counters", "check_arrays", "t_to_arrays", "arrays_to_t"]
@@ -33,12 +34,18 @@ _T_FIELDS = ("states", "actions", "rewards", "next_states", "terminated", "trunc
              "value_labels", "episode_ids", "steps")
 
 
-def t_to_arrays(t: Transitions) -> dict[str, np.ndarray]:
-    """A store's WAL record."""
-    return {f: getattr(t, f) for f in _T_FIELDS}
+def t_to_arrays(t: Transitions, layout: FrameLayout | None = None) -> dict[str, np.ndarray]:
+    """A store's WAL record; with a frame layout its observations as distinct frames and indices (pack_obs)."""
+    if layout is None:
+        return {f: getattr(t, f) for f in _T_FIELDS}
+    return {**{f: getattr(t, f) for f in _T_FIELDS if f not in ("states", "next_states")},
+            **pack_obs(layout, t.states, t.next_states)}
 
 
 def arrays_to_t(arr: dict[str, np.ndarray]) -> Transitions:
+    if FRAMES_ARRAY in arr:
+        states, next_states = unpack_obs(arr)
+        arr = {**arr, "states": states, "next_states": next_states}
     return Transitions(**{f: arr[f] for f in _T_FIELDS})
 
 

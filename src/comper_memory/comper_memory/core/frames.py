@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FrameLayout", "FrameStore", "frame_layout", "FRAME_STORE_MODES", "AUTO_MIN_FRAME_BYTES",
-           "FRAMES_ARRAY"]
+__all__ = ["FrameLayout", "FrameStore", "frame_layout", "first_equal", "pack_obs", "unpack_obs",
+           "FRAME_STORE_MODES", "AUTO_MIN_FRAME_BYTES", "FRAMES_ARRAY"]
 
 FRAME_STORE_MODES = ("auto", "on", "off")
 AUTO_MIN_FRAME_BYTES = 1024      # auto: a frame must hold at least this many bytes (refs and index cost ~120 B)
@@ -93,6 +93,43 @@ def frame_layout(mode: str, axis: int, obs_shape: tuple, dtype) -> FrameLayout |
 def _digest(frame: np.ndarray) -> int:
     """32 bits of CRC (a frame sharing it with other bytes is told apart by comparing them)."""
     return zlib.crc32(memoryview(frame).cast("B"))
+
+
+def first_equal(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(digests, src) of frames [m, ...] (C-contiguous): src[i] = the first row with the bytes of row i, found by
+    digest and confirmed by one vectorised comparison (rows whose digest is shared by other bytes: one by one).
+    A stack's frames recur in the next state and in the next transition, so a store's rows repeat."""
+    m = len(frames)
+    digests = np.fromiter((_digest(f) for f in frames), np.uint64, m)
+    _, first, inv = np.unique(digests, return_index=True, return_inverse=True)
+    src = first[inv]
+    rows = frames.reshape(m, -1)
+    for i in np.flatnonzero(~(rows == rows[src]).all(axis=1)).tolist():   # digest collisions
+        same = np.flatnonzero((digests[:i] == digests[i]) & (rows[:i] == rows[i]).all(axis=1))
+        src[i] = same[0] if len(same) else i
+    return digests, src
+
+
+def pack_obs(layout: FrameLayout, states: np.ndarray, next_states: np.ndarray) -> dict[str, np.ndarray]:
+    """A store's observations as a WAL record holds them: its distinct frames once, and per transition the
+    indices of its state's and next state's frames among them (:func:`unpack_obs` rebuilds them exactly)."""
+    n, k = len(states), layout.stack
+    frames = np.concatenate([layout.split(states), layout.split(next_states)], axis=1).reshape(-1, *layout.frame_shape)
+    _, src = first_equal(frames)
+    keep, idx = np.unique(src, return_inverse=True)
+    idx = idx.reshape(n, 2 * k)
+    return {FRAMES_ARRAY: frames[keep], "state_frames": idx[:, :k], "next_frames": idx[:, k:],
+            "frame_axis": np.array([-1 if layout.axis is None else layout.axis], np.int64)}
+
+
+def unpack_obs(record: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(states, next states) of a record written by :func:`pack_obs`."""
+    frames = record[FRAMES_ARRAY]
+    axis = int(record["frame_axis"][0])
+    k = record["state_frames"].shape[1]
+    shape = frames.shape[1:] if axis < 0 else (*frames.shape[1:axis + 1], k, *frames.shape[axis + 1:])
+    layout = FrameLayout(tuple(shape), frames.dtype.str, None if axis < 0 else axis)
+    return tuple(layout.join(frames[record[f]]) for f in ("state_frames", "next_frames"))
 
 
 class FrameStore:
@@ -183,20 +220,15 @@ class FrameStore:
 
     def intern(self, frames: np.ndarray) -> np.ndarray:
         """Ids of ``frames`` ([m, *frame_shape], C-contiguous), one more reference each (a row repeated counts
-        each time). Rows repeated within the call (a stack's frames recur in the next state and the next
-        transition) are told apart by digest and one vectorised byte comparison, then looked up once."""
+        each time). Rows repeated within the call are looked up once (:func:`first_equal`)."""
         m = len(frames)
         if self.hi + m > self.cap and len(self.free) < m:
             self._grow(self.hi + m)
-        digests = np.fromiter((_digest(f) for f in frames), np.uint64, m)
-        _, first, inv = np.unique(digests, return_index=True, return_inverse=True)
-        rows = frames.reshape(m, -1)
-        same = (rows == rows[first[inv]]).all(axis=1)        # False only for a digest shared by other bytes
-        ids = np.empty(m, np.int64)
-        ids_first = np.array([self._intern_one(int(digests[i]), frames[i]) for i in first.tolist()], np.int64)
-        ids[:] = ids_first[inv] if len(first) else ids
-        for i in np.flatnonzero(~same).tolist():
+        digests, src = first_equal(frames)
+        ids = np.full(m, -1, np.int64)
+        for i in np.unique(src).tolist():
             ids[i] = self._intern_one(int(digests[i]), frames[i])
+        ids = ids[src]
         np.add.at(self.refs, ids, 1)
         return ids
 

@@ -235,8 +235,9 @@ def _peek(data, start: int, end: int) -> str:
             return ""
         header = json.loads(bytes(data[p:p + hlen]))
         rows = {name: shape for name, _, shape in header}
-        if kind == WAL_STORE and rows.get("states"):
-            return f"its unverified header says sequence {seq}, a store of {int(rows['states'][0])} transitions"
+        n = rows.get("rewards") or rows.get("states")   # one row per transition (frame records: no states)
+        if kind == WAL_STORE and n:
+            return f"its unverified header says sequence {seq}, a store of {int(n[0])} transitions"
         if kind == WAL_COMMIT and rows.get("ids"):
             return f"its unverified header says sequence {seq}, a reduction commit of {int(rows['ids'][0])} identities"
         return f"its unverified header says sequence {seq}"
