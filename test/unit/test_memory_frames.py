@@ -55,7 +55,7 @@ def assert_same_transitions(a, b):
 
 def refs_consistent(mem):
     """Every frame's count equals the references the live identities hold, and only those frames are indexed."""
-    fs = mem.slots.frames
+    fs = mem.slots.obs.frames
     slots = mem.slots.slots_sorted
     refs = np.concatenate([mem.a["state_frames"][slots].ravel(), mem.a["next_frames"][slots].ravel()])
     assert np.array_equal(fs.refs[:fs.hi], np.bincount(refs, minlength=fs.hi))
@@ -83,7 +83,7 @@ def test_decisions_samples_and_keys_equal_whole_observations_on_an_atari_stream(
             for m in ("off", "auto")}
     ids = {m: comper_pattern(mem, t) for m, mem in mems.items()}
     off, on = mems["off"], mems["auto"]
-    assert on.slots.layout is not None and off.slots.layout is None
+    assert on.slots.obs.layout is not None and off.slots.obs.layout is None
     np.testing.assert_array_equal(ids["auto"], ids["off"])                       # identity ids match
     assert on.stats()["evictions"] == off.stats()["evictions"] > 0
     live = off.slots.ids_sorted
@@ -97,7 +97,7 @@ def test_decisions_samples_and_keys_equal_whole_observations_on_an_atari_stream(
         np.testing.assert_array_equal(a.identity_ids, b.identity_ids)
         assert_same_transitions(a.transitions, b.transitions)
     # each frame once: about one new frame per transition, not eight
-    fs = on.slots.frames
+    fs = on.slots.obs.frames
     assert fs.n_live < 2 * on.slots.n_live
     refs_consistent(on)
     assert on.bytes_used() * 4 < off.bytes_used()
@@ -120,7 +120,7 @@ def test_rebuilt_stacks_are_the_ones_stored_across_episode_boundaries(atari_stre
         assert all(np.array_equal(s[0], s[k]) for k in range(STACK))
     refs_consistent(mem)
     # the two resets with seed 3 give the same first frame: stored once
-    fs = mem.slots.frames
+    fs = mem.slots.obs.frames
     assert fs.n_live < len(np.unique(ids)) + STACK * (len(ends) + 2)
 
 
@@ -134,7 +134,7 @@ def test_evictions_free_frames_and_reuse_them():
         mem.store(Transitions(s, np.zeros(64, np.int64), np.zeros(64, np.float32), frames[k[:, None] + 1 +
                   np.arange(STACK)], np.zeros(64, bool), np.zeros(64, bool), value_labels=np.zeros(64, np.float32)))
         refs_consistent(mem)
-    fs = mem.slots.frames
+    fs = mem.slots.obs.frames
     assert mem.slots.n_live == 256 and fs.n_live == 256 + STACK
     assert fs.hi <= 256 + STACK + 64 * (STACK + 1) + 64      # freed frames are reused, the store does not grow
 
@@ -176,7 +176,7 @@ def test_snapshot_round_trip_and_the_previous_layout_converted(tmp_path, atari_s
         for mode in ("auto", "off"):
             mem = CompactMemory(MemoryConfig(frame_store=mode, **cfg))
             mem.load_snapshot(str(tmp_path / snap))
-            assert (mem.slots.layout is None) == (mode == "off")
+            assert (mem.slots.obs.layout is None) == (mode == "off")
             np.testing.assert_array_equal(mem.store(tail).identity_ids, ids_after)
             a, b = mem.sample(32, source="tm", seed=2), off.sample(32, source="tm", seed=2)
             np.testing.assert_array_equal(a.identity_ids, b.identity_ids)
@@ -219,12 +219,12 @@ def test_bad_input_leaves_nothing_stored(tmp_path, atari_stream):
         CompactMemory(MemoryConfig(frame_store="on", frame_axis=5)).store(t)
     mem = CompactMemory(MemoryConfig())
     mem.store(t.take(np.arange(20)))
-    before = (mem.slots.frames.hi, mem.slots.frames.n_live, mem.stats()["identities"])
+    before = (mem.slots.obs.frames.hi, mem.slots.obs.frames.n_live, mem.stats()["identities"])
     bad = Transitions(t.states[:, :3], t.actions, t.rewards, t.next_states[:, :3], t.terminated, t.truncated,
                       value_labels=t.value_labels)
     with pytest.raises(MemoryInputError, match="differ from the memory"):
         mem.store(bad)
-    assert (mem.slots.frames.hi, mem.slots.frames.n_live, mem.stats()["identities"]) == before
+    assert (mem.slots.obs.frames.hi, mem.slots.obs.frames.n_live, mem.stats()["identities"]) == before
     # a snapshot whose frame references point outside its frames is refused, the state untouched
     mem.save_snapshot(str(tmp_path / "s"))
     arrays, meta = read_snapshot(str(tmp_path / "s"))
@@ -232,5 +232,5 @@ def test_bad_input_leaves_nothing_stored(tmp_path, atari_stream):
     write_snapshot(str(tmp_path / "bad"), arrays, meta)
     with pytest.raises(SnapshotError, match="outside its"):
         mem.load_snapshot(str(tmp_path / "bad"))
-    assert (mem.slots.frames.hi, mem.slots.frames.n_live, mem.stats()["identities"]) == before
+    assert (mem.slots.obs.frames.hi, mem.slots.obs.frames.n_live, mem.stats()["identities"]) == before
     refs_consistent(mem)

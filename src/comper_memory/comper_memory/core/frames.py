@@ -26,14 +26,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FrameLayout", "FrameStore", "frame_layout", "first_equal", "pack_obs", "unpack_obs",
-           "FRAME_STORE_MODES", "AUTO_MIN_FRAME_BYTES", "FRAMES_ARRAY"]
+__all__ = ["FrameLayout", "FrameStore", "ObsColumns", "frame_layout", "first_equal", "pack_obs", "unpack_obs",
+           "check_snapshot_obs", "written_layout", "layout_meta", "FRAME_STORE_MODES", "AUTO_MIN_FRAME_BYTES",
+           "FRAMES_ARRAY", "OBS_FIELDS", "FRAME_FIELDS"]
 
 FRAME_STORE_MODES = ("auto", "on", "off")
 AUTO_MIN_FRAME_BYTES = 1024      # auto: a frame must hold at least this many bytes (refs and index cost ~120 B)
 FRAME_BLOCK = 1024               # the smallest growth of the frames' map (frames)
 FRAME_GROWTH_MAX = 1 << 17       # the largest (0.9 GB of 84x84 frames): the map's size stays near its use
 FRAMES_ARRAY = "frames"          # the snapshot array of the frame store
+OBS_FIELDS = ("states", "next_states")            # slot columns of whole observations
+FRAME_FIELDS = ("state_frames", "next_frames")    # slot columns of frame ids, with a frame layout
+_CONVERT_ROWS = 4096             # rows converted at a time when a snapshot's observations are in the other layout
 _DICT_ENTRY_BYTES = 64           # a digest -> id entry's two int objects (the table: sys.getsizeof)
 
 
@@ -296,3 +300,88 @@ def written_layout(schema: dict) -> FrameLayout | None:
     if axis is not None and not (isinstance(axis, int) and 0 <= axis < len(schema["obs_shape"])):
         raise ValueError(f"its frame axis {axis!r} does not fit observations {list(schema['obs_shape'])}")
     return FrameLayout(tuple(int(d) for d in schema["obs_shape"]), np.dtype(schema["obs_dtype"]).str, axis)
+
+
+class ObsColumns:
+    """The slot table's observation columns, the switch's two branches in one place: whole observations
+    (OBS_FIELDS) when ``layout`` is None, else frame ids (FRAME_FIELDS) into ``frames``. ``a``: the table's
+    columns, ``slots``: rows of them."""
+
+    def __init__(self, obs_shape: tuple, obs_dtype, layout: FrameLayout | None):
+        self.obs_shape, self.obs_dtype = tuple(obs_shape), np.dtype(obs_dtype)
+        self.layout = layout
+        self.frames = None if layout is None else FrameStore(layout.frame_shape, layout.dtype)
+
+    def columns(self) -> dict[str, tuple[tuple, np.dtype, object]]:
+        """(shape, dtype, fill) of each column, as SlotTable._field_spec gives them."""
+        if self.layout is None:
+            return {f: (self.obs_shape, self.obs_dtype, 0) for f in OBS_FIELDS}
+        return {f: ((self.layout.stack,), np.dtype(np.int64), -1) for f in FRAME_FIELDS}
+
+    def get(self, a: dict, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(states, next states) of ``slots``, as they were stored."""
+        if self.layout is None:
+            return a["states"][slots], a["next_states"][slots]
+        return tuple(self.layout.join(self.frames.gather(a[f][slots])) for f in FRAME_FIELDS)
+
+    def put(self, a: dict, slots: np.ndarray, states: np.ndarray, next_states: np.ndarray) -> None:
+        if self.layout is None:
+            a["states"][slots], a["next_states"][slots] = states, next_states
+            return
+        for f, obs in zip(FRAME_FIELDS, (states, next_states)):
+            ids = self.frames.intern(self.layout.split(obs).reshape(-1, *self.layout.frame_shape))
+            a[f][slots] = ids.reshape(len(obs), self.layout.stack)
+
+    def drop(self, a: dict, slots: np.ndarray) -> None:
+        """``slots`` are freed: their frames lose a reference each."""
+        if self.frames is not None:
+            for f in FRAME_FIELDS:
+                self.frames.release(a[f][slots])
+                a[f][slots] = -1
+
+    def rows(self, a: dict, slots: np.ndarray) -> dict[str, np.ndarray]:
+        """The snapshot arrays of ``slots``: the observations, or their frame ids and the frames."""
+        if self.layout is None:
+            return {f: a[f][slots] for f in OBS_FIELDS}
+        return {**{f: a[f][slots] for f in FRAME_FIELDS}, **self.frames.arrays()}
+
+    def load(self, a: dict, slots: np.ndarray, arrays: dict[str, np.ndarray], written: FrameLayout | None) -> None:
+        """Fill ``slots`` from a snapshot's rows held in ``written`` (checked before: :func:`check_snapshot_obs`);
+        the other layout (a snapshot from before ``frame_store``, or of another setting) is converted,
+        ``_CONVERT_ROWS`` rows at a time."""
+        if self.layout is not None and self.layout == written:      # frames as written
+            self.frames.load(arrays[FRAMES_ARRAY], np.concatenate([arrays[f].reshape(-1) for f in FRAME_FIELDS]))
+            for f in FRAME_FIELDS:
+                a[f][slots] = arrays[f]
+        elif self.layout is None and written is None:
+            for f in OBS_FIELDS:
+                a[f][slots] = arrays[f]
+        else:
+            source = ObsColumns(self.obs_shape, self.obs_dtype, written)
+            if written is not None:
+                source.frames.load(arrays[FRAMES_ARRAY], np.concatenate([arrays[f].reshape(-1) for f in FRAME_FIELDS]))
+            for i in range(0, len(slots), _CONVERT_ROWS):
+                self.put(a, slots[i:i + _CONVERT_ROWS], *source.get(arrays, slice(i, i + _CONVERT_ROWS)))
+
+    def bytes_used(self) -> int:
+        return 0 if self.frames is None else self.frames.bytes_used()
+
+
+def check_snapshot_obs(arrays: dict[str, np.ndarray], written: FrameLayout | None) -> str | None:
+    """What is wrong with a snapshot's observations held in ``written`` (None: as observations), or None."""
+    n = len(arrays["id"])
+    fields = OBS_FIELDS if written is None else FRAME_FIELDS
+    missing = [f for f in fields if f not in arrays]
+    if missing:
+        return f"lacks arrays {missing}"
+    if written is None:
+        return None
+    if any(arrays[f].shape != (n, written.stack) or arrays[f].dtype.kind not in "iu" for f in fields):
+        return f"frame references are not {n} x {written.stack} integers"
+    frames = arrays.get(FRAMES_ARRAY)
+    if frames is None or frames.dtype != np.dtype(written.dtype) or tuple(frames.shape[1:]) != written.frame_shape:
+        return f"frames are not {np.dtype(written.dtype)}{list(written.frame_shape)}"
+    total = len(frames)
+    if n and any(arrays[f].size and (arrays[f].min() < 0 or arrays[f].max() >= total) for f in fields):
+        return f"frame references point outside its {total} frames"
+    return None

@@ -153,7 +153,7 @@ class CompactMemory:
         state.tm.expire(self._clock)
         y, res = resolve_store(state.index, state.key_norm, keys)
         if self._durable is not None:
-            record = t_to_arrays(clean, state.slots.layout)
+            record = t_to_arrays(clean, state.slots.obs.layout)
             if request is not None:
                 record["request"] = request
             self._durable.append(state.wal_sequence + 1, st.WAL_STORE, record)

@@ -21,13 +21,13 @@ from . import storage as st
 from .chunked_store import StoreRegistry, StoreTarget, check_registry
 from .config import MemoryConfig
 from .durability import COUNTERS, arrays_to_t, check_counters
-from .frames import frame_layout, layout_meta, written_layout
+from .frames import check_snapshot_obs, frame_layout, layout_meta, written_layout
 from .index import make_index
 from .key_norm import KeyNormaliser, resolve_store
 from .reduction import Reduction
 from .results import CommitResult, MemoryInputError, StoreResult
 from .similarity import ResolveResult, SimilarityIndex
-from .slots import SlotTable, check_snapshot_obs
+from .slots import SlotTable
 from .tables import ReducedTable, Remover, TransitionTable
 from .validation import index_key_size, schema_of, validate_store
 

@@ -7,9 +7,8 @@ prediction and lease. Identity ids are int64, allocated in increasing order and 
 slots are reused (a free list). ``ids_sorted``/``slots_sorted`` map live ids to slots (ids
 increasing, so a lookup is a binary search).
 
-With a frame layout (:func:`~.frames.frame_layout`, ``frame_store``) a representative's observations are
-kept as frame ids (columns ``state_frames``, ``next_frames``: [stack] each) into a
-:class:`~.frames.FrameStore` that holds each distinct frame once; :meth:`SlotTable.obs_of` rebuilds them.
+A representative's observations are columns of their own (:class:`~.frames.ObsColumns`): whole, or with a
+frame layout (``frame_store``) frame ids into a :class:`~.frames.FrameStore` that holds each distinct frame once.
 
 The table is also the index's :class:`~comper_memory.core.similarity.KeySource`: an identity's
 key is rebuilt from its representative (and scaled by the memory's
@@ -24,19 +23,16 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-from .frames import FRAMES_ARRAY, FrameLayout, FrameStore
+from .frames import FrameLayout, ObsColumns
 from .key_norm import KeyNormaliser
 from .keys import transition_keys
 
-__all__ = ["SlotTable", "SLOT_FIELDS", "OBS_FIELDS", "FRAME_FIELDS"]
+__all__ = ["SlotTable", "SLOT_FIELDS"]
 
-# the slot columns as snapshots hold them (hist_total == count, kept for the format), and the observations:
-# OBS_FIELDS in the table, or FRAME_FIELDS (frame ids) with a frame layout
+# the slot columns as snapshots hold them (hist_total == count, kept for the format); the observations'
+# columns are ObsColumns'
 SLOT_FIELDS = ("id", "rewards", "terminated", "truncated", "episode_id", "hist", "hist_total",
                "count", "first_step", "last_step", "last_seq", "tm_key", "rtm_pred", "lease", "actions")
-OBS_FIELDS = ("states", "next_states")
-FRAME_FIELDS = ("state_frames", "next_frames")
-_CONVERT_ROWS = 4096      # rows converted at a time when a snapshot's observations are in the other layout
 # representative columns written when an identity is created: (Transitions field, column)
 _REP_COLUMNS = (("actions", "actions"),
                 ("rewards", "rewards"), ("terminated", "terminated"), ("truncated", "truncated"),
@@ -51,8 +47,7 @@ class SlotTable:
         self.frame_scale = frame_scale
         self.key_norm = key_norm if key_norm is not None else KeyNormaliser()
         self.schema: dict | None = None
-        self.layout: FrameLayout | None = None   # set with the schema (set_schema)
-        self.frames: FrameStore | None = None
+        self.obs: ObsColumns | None = None      # set with the schema (set_schema)
         self.cap = 0
         self.a: dict[str, np.ndarray] = {}
         self.free: list[int] = []
@@ -67,15 +62,11 @@ class SlotTable:
     def set_schema(self, schema: dict, layout: FrameLayout | None) -> None:
         """The observations' shapes, and whether they are kept as frame ids (``layout``) or in the table."""
         self.schema = schema
-        self.layout = layout
-        self.frames = None if layout is None else FrameStore(layout.frame_shape, layout.dtype)
+        self.obs = ObsColumns(schema["obs_shape"], schema["obs_dtype"], layout)
 
     def _field_spec(self) -> dict[str, tuple[tuple, np.dtype, object]]:
         s = self.schema
-        lay = self.layout
-        obs = {f: (s["obs_shape"], np.dtype(s["obs_dtype"]), 0) for f in OBS_FIELDS} if lay is None else \
-            {f: ((lay.stack,), np.int64, -1) for f in FRAME_FIELDS}
-        return {**obs, 
+        return {**self.obs.columns(), 
             "id": ((), np.int64, -1), "rewards": ((), np.float32, 0), "terminated": ((), bool, False),
             "truncated": ((), bool, False), "episode_id": ((), np.uint64, 0),
             "hist": ((self.H,), np.float32, 0),
@@ -164,30 +155,13 @@ class SlotTable:
         return self.slots_of(ids) >= 0
 
     # ------------------------------------------------------------------ identities
-    def obs_of(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(states, next states) of the representatives in ``slots``, as they were stored."""
-        a = self.a
-        if self.layout is None:
-            return a["states"][slots], a["next_states"][slots]
-        return tuple(self.layout.join(self.frames.gather(a[f][slots])) for f in FRAME_FIELDS)
-
-    def _put_obs(self, slots: np.ndarray, states: np.ndarray, next_states: np.ndarray) -> None:
-        a = self.a
-        if self.layout is None:
-            a["states"][slots], a["next_states"][slots] = states, next_states
-            return
-        for f, obs in zip(FRAME_FIELDS, (states, next_states)):
-            frames = self.layout.split(obs)
-            ids = self.frames.intern(frames.reshape(-1, *self.layout.frame_shape))
-            a[f][slots] = ids.reshape(len(obs), self.layout.stack)
-
     def keys_of_slots(self, slots: np.ndarray) -> np.ndarray:
         return self.key_norm.apply(self.raw_keys_of_slots(slots))
 
     def raw_keys_of_slots(self, slots: np.ndarray) -> np.ndarray:
         """Keys [s, a, r, s'] of the identities in ``slots`` before the key normaliser."""
         a = self.a
-        s, s2 = self.obs_of(slots)
+        s, s2 = self.obs.get(a, slots)
         t = Transitions(s, a["actions"][slots], a["rewards"][slots], s2, a["terminated"][slots],
                         a["truncated"][slots])
         return transition_keys(t, self.frame_scale)
@@ -201,7 +175,7 @@ class SlotTable:
             a["id"][slots] = ids
             for f_src, f_dst in _REP_COLUMNS:
                 a[f_dst][slots] = getattr(t, f_src)[rows]
-            self._put_obs(slots, t.states[rows], t.next_states[rows])
+            self.obs.put(a, slots, t.states[rows], t.next_states[rows])
             a["count"][slots] = 0
             a["lease"][slots] = -1
             a["rtm_pred"][slots] = 0
@@ -238,10 +212,7 @@ class SlotTable:
         """Drop the identities in ``slots`` (unique); returns their ids."""
         a = self.a
         ids = a["id"][slots].copy()
-        if self.frames is not None:
-            for f in FRAME_FIELDS:
-                self.frames.release(a[f][slots])
-                a[f][slots] = -1
+        self.obs.drop(a, slots)
         keep = ~np.isin(self.ids_sorted, ids)
         self.set_sorted(self.ids_sorted[keep], self.slots_sorted[keep])
         a["id"][slots] = -1
@@ -267,7 +238,7 @@ class SlotTable:
 
     def reps(self, slots: np.ndarray, labels: np.ndarray) -> Transitions:
         a = self.a
-        s, s2 = self.obs_of(slots)
+        s, s2 = self.obs.get(a, slots)
         return Transitions(s, a["actions"][slots], a["rewards"][slots], s2, a["terminated"][slots],
                            a["truncated"][slots],
                            value_labels=labels.astype(np.float32), episode_ids=a["episode_id"][slots],
@@ -279,67 +250,23 @@ class SlotTable:
         slots = self.slots_sorted
         # snapshot format unchanged: hist_total == count
         out = {name: self.a["count" if name == "hist_total" else name][slots] for name in SLOT_FIELDS}
-        if self.layout is None:
-            out.update({f: self.a[f][slots] for f in OBS_FIELDS})
-        else:
-            out.update({f: self.a[f][slots] for f in FRAME_FIELDS})
-            out.update(self.frames.arrays())
-        return out
+        return {**out, **self.obs.rows(self.a, slots)}
 
     def load_rows(self, arrays: dict[str, np.ndarray], written: FrameLayout | None = None) -> np.ndarray:
         """Fill an empty table from snapshot columns (ids increasing); returns the slots. ``written``: the frame
-        layout the snapshot holds (None: observations). Observations written in the other layout (a snapshot from
-        before ``frame_store``, or one of another setting) are converted here, ``_CONVERT_ROWS`` at a time;
-        ValueError if the snapshot's frames do not fit its references."""
+        layout the snapshot holds (None: observations), converted if it is not this table's (ObsColumns.load).
+        """
         ids = arrays["id"]
         slots = self.alloc(len(ids))
         for name in SLOT_FIELDS:
             if name != "hist_total":  # equals count (kept in the snapshot for its format)
                 self.a[name][slots] = arrays[name]
-        if self.layout is not None and self.layout == written:     # frames as written: adopted
-            self.frames.load(arrays[FRAMES_ARRAY], np.concatenate([arrays[f].reshape(-1) for f in FRAME_FIELDS]))
-            for f in FRAME_FIELDS:
-                self.a[f][slots] = arrays[f]
-        elif self.layout is None and written is None:
-            for f in OBS_FIELDS:
-                self.a[f][slots] = arrays[f]
-        else:
-            obs = _snapshot_obs(arrays, written)
-            for i in range(0, len(ids), _CONVERT_ROWS):
-                self._put_obs(slots[i:i + _CONVERT_ROWS], *obs(i, i + _CONVERT_ROWS))
+        self.obs.load(self.a, slots, arrays, written)
         self.set_sorted(ids.astype(np.int64), slots)
         return slots
 
     def bytes_used(self) -> int:
         return (sum(arr.nbytes for arr in self.a.values()) + self._ids_buf.nbytes +
                 self._slots_buf.nbytes + 8 * len(self.free) +
-                (self.frames.bytes_used() if self.frames is not None else 0))
+                (self.obs.bytes_used() if self.obs is not None else 0))
 
-
-def _snapshot_obs(arrays: dict[str, np.ndarray], layout: FrameLayout | None):
-    """obs(i, j) -> (states, next states) of snapshot rows i..j, held in ``layout`` (None: as observations)."""
-    if layout is None:
-        return lambda i, j: tuple(arrays[f][i:j] for f in OBS_FIELDS)
-    store = FrameStore(layout.frame_shape, layout.dtype)
-    store.load(arrays[FRAMES_ARRAY], np.concatenate([arrays[f].reshape(-1) for f in FRAME_FIELDS]))
-    return lambda i, j: tuple(layout.join(store.gather(arrays[f][i:j])) for f in FRAME_FIELDS)
-
-
-def check_snapshot_obs(arrays: dict[str, np.ndarray], written: FrameLayout | None) -> str | None:
-    """What is wrong with a snapshot's observations held in ``written`` (None: as observations), or None."""
-    n = len(arrays["id"])
-    fields = OBS_FIELDS if written is None else FRAME_FIELDS
-    missing = [f for f in fields if f not in arrays]
-    if missing:
-        return f"lacks arrays {missing}"
-    if written is None:
-        return None
-    if any(arrays[f].shape != (n, written.stack) or arrays[f].dtype.kind not in "iu" for f in fields):
-        return f"frame references are not {n} x {written.stack} integers"
-    frames = arrays.get(FRAMES_ARRAY)
-    if frames is None or frames.dtype != np.dtype(written.dtype) or tuple(frames.shape[1:]) != written.frame_shape:
-        return f"frames are not {np.dtype(written.dtype)}{list(written.frame_shape)}"
-    total = len(frames)
-    if n and any(arrays[f].size and (arrays[f].min() < 0 or arrays[f].max() >= total) for f in fields):
-        return f"frame references point outside its {total} frames"
-    return None
