@@ -234,3 +234,17 @@ def test_bad_input_leaves_nothing_stored(tmp_path, atari_stream):
         mem.load_snapshot(str(tmp_path / "bad"))
     assert (mem.slots.obs.frames.hi, mem.slots.obs.frames.n_live, mem.stats()["identities"]) == before
     refs_consistent(mem)
+
+
+def test_the_frames_map_grows_in_place_unless_a_view_of_it_is_held():
+    fs = FrameStore((84, 84), np.uint8)
+    f = np.random.default_rng(2).integers(0, 256, (3_000, 84, 84), dtype=np.uint8)
+    ids = fs.intern(f[:1_000])
+    mm = fs._mm
+    ids = np.concatenate([ids, fs.intern(f[1_000:2_100])])
+    assert fs._mm is mm and fs.cap >= 2_100                   # resized in place (mremap), nothing copied
+    held = fs.arrays()["frames"]                              # a snapshot's view of the map
+    ids = np.concatenate([ids, fs.intern(f[2_100:])])
+    assert fs._mm is not mm                                   # copied into a new map; the view stays valid
+    np.testing.assert_array_equal(fs.gather(ids), f)
+    np.testing.assert_array_equal(held, f[:2_100])

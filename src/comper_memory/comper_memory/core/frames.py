@@ -171,17 +171,17 @@ class FrameStore:
         (a snapshot's arrays)."""
         cap = max(need, self.cap + min(max(self.cap, FRAME_BLOCK), FRAME_GROWTH_MAX))
         size = max(1, cap * self.frame_bytes)
-        old, self.frames = self.frames, None
+        old_cap, self.frames = self.cap, None          # our own view released: the map may be resized
         try:
             if self._mm is None:
                 raise BufferError
             self._mm.resize(size)
-        except BufferError:
+        except BufferError:                             # none yet, or a view of it is held elsewhere
             mm = mmap.mmap(-1, size, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
-            if len(old):
-                np.frombuffer(mm, self.dtype, count=old.size).reshape(old.shape)[:] = old
+            if old_cap:
+                count = old_cap * self.frame_bytes // self.dtype.itemsize
+                np.frombuffer(mm, self.dtype, count=count)[:] = np.frombuffer(self._mm, self.dtype, count=count)
             self._mm = mm
-        del old
         self.frames = np.frombuffer(self._mm, self.dtype, count=cap * self.frame_bytes // self.dtype.itemsize
                                     ).reshape(cap, *self.frame_shape)
         grow = cap - len(self.refs)
