@@ -242,7 +242,10 @@ def plot(records: list[dict], out_dir: Path) -> list[Path]:
             ax.errorbar(xs, ms, yerr=[[m - c[0] for m, c in zip(ms, ci)], [c[1] - m for m, c in zip(ms, ci)]],
                         marker="o", capsize=3, label=mem)
         ax.set_xscale("log")
-        ax.set_xlabel("budget (identities / transitions of the run)")
+        ticks = sorted({b / steps for (_, b) in cells if b} | {1.0})
+        ax.set_xticks(ticks, [f"1/{round(1 / t)}" if t < 1 else "whole run" for t in ticks])
+        ax.minorticks_off()
+        ax.set_xlabel("budget (identities, as a share of the run's transitions)")
         ax.set_ylabel("return, mean of the last 3 evaluations")
         ax.set_title(f"{task}: return against memory budget (95% CI)")
         ax.legend()
