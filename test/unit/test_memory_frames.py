@@ -248,3 +248,18 @@ def test_the_frames_map_grows_in_place_unless_a_view_of_it_is_held():
     assert fs._mm is not mm                                   # copied into a new map; the view stays valid
     np.testing.assert_array_equal(fs.gather(ids), f)
     np.testing.assert_array_equal(held, f[:2_100])
+
+
+def test_large_snapshot_frames_are_read_into_the_map_not_held_twice(tmp_path, atari_stream, monkeypatch):
+    from comper_memory.core import storage
+    mem = CompactMemory(MemoryConfig(max_store_batch=100))
+    mem.store(atari_stream.take(np.arange(100)))
+    mem.save_snapshot(str(tmp_path / "s"))
+    monkeypatch.setattr(storage, "MAP_MEMBER_BYTES", 1 << 16)   # the frames (~0.8 MB) count as large here
+    arrays, _ = read_snapshot(str(tmp_path / "s"))
+    assert isinstance(arrays["frames"], np.memmap) and not isinstance(arrays["id"], np.memmap)
+    again = CompactMemory(MemoryConfig(max_store_batch=100))
+    again.load_snapshot(str(tmp_path / "s"))
+    a, b = (m.sample(50, source="tm", seed=1) for m in (mem, again))
+    assert_same_transitions(a.transitions, b.transitions)
+    refs_consistent(again)

@@ -269,7 +269,10 @@ class FrameStore:
         """Fill an empty store from a snapshot's frames and every reference its slots hold (checked before:
         slots.check_snapshot_obs)."""
         self._grow(len(frames))
-        self.frames[:len(frames)] = frames
+        if isinstance(frames, np.memmap) and frames.flags.c_contiguous:   # a large snapshot member (read_snapshot)
+            _read_into(frames.filename, frames.offset, memoryview(self._mm)[:frames.nbytes])
+        else:
+            self.frames[:len(frames)] = frames
         self.hi = len(frames)
         ref_ids = np.asarray(ref_ids, dtype=np.int64).reshape(-1)
         self.refs[:] = 0
@@ -300,6 +303,20 @@ def written_layout(schema: dict) -> FrameLayout | None:
     if axis is not None and not (isinstance(axis, int) and 0 <= axis < len(schema["obs_shape"])):
         raise ValueError(f"its frame axis {axis!r} does not fit observations {list(schema['obs_shape'])}")
     return FrameLayout(tuple(int(d) for d in schema["obs_shape"]), np.dtype(schema["obs_dtype"]).str, axis)
+
+
+def _read_into(path: str, offset: int, dest: memoryview) -> None:
+    """Read a file's bytes from ``offset`` straight into ``dest`` (no mapping of the file: its pages never count
+    in this process's RSS)."""
+    with open(path, "rb", buffering=0) as f:
+        f.seek(offset)
+        done = 0
+        while done < len(dest):
+            got = f.readinto(dest[done:done + (1 << 30)])
+            if not got:
+                raise ValueError(f"{path}: ends {len(dest) - done} bytes early")
+            done += got
+    dest.release()
 
 
 class ObsColumns:

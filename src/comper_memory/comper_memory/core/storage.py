@@ -64,6 +64,7 @@ _SNAPSHOT_FILES = {"manifest.json", "state.npz"}
 _MAX_RECORD = 1 << 31        # a length field above this is damage, not a record
 _MAX_ENDS = 64               # payload ends tried for a record whose header is damaged
 MARK_FILE = "wal.mark"
+MAP_MEMBER_BYTES = 1 << 28   # state.npz members this large are mapped, not read (read_snapshot)
 MARK_FORMAT = 1
 
 
@@ -507,6 +508,28 @@ def write_snapshot(path: str, arrays: dict[str, np.ndarray], meta: dict) -> None
         remove_snapshot_dir(old)
 
 
+def _member(npz: str, z, name: str) -> np.ndarray:
+    """A member of a verified state.npz; a large uncompressed one as a read-only memory map of the file (a restore
+    then copies it where it belongs without holding it twice, e.g. a frame store's frames)."""
+    info = z.zip.getinfo(f"{name}.npy")
+    if info.file_size < MAP_MEMBER_BYTES or info.compress_type != 0:
+        return z[name]
+    with open(npz, "rb") as f:
+        f.seek(info.header_offset)
+        local = f.read(30)
+        if local[:4] != b"PK\x03\x04":
+            raise ValueError(f"{info.filename}: no local file header")
+        name_len, extra_len = struct.unpack("<HH", local[26:30])
+        f.seek(info.header_offset + 30 + name_len + extra_len)
+        version = np.lib.format.read_magic(f)
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = read_header(f)
+        if dtype.hasobject:
+            raise ValueError(f"{info.filename}: object arrays are not allowed")
+        offset = f.tell()
+    return np.memmap(npz, dtype=dtype, mode="r", offset=offset, shape=shape, order="F" if fortran else "C")
+
+
 def read_snapshot(path: str) -> tuple[dict[str, np.ndarray], dict]:
     """Read and verify a snapshot; raise SnapshotError (nothing loaded) on any mismatch."""
     mpath = os.path.join(path, "manifest.json")
@@ -529,7 +552,7 @@ def read_snapshot(path: str) -> tuple[dict[str, np.ndarray], dict]:
         raise SnapshotError(f"snapshot {path!r}: state.npz checksum mismatch (corrupted or truncated)")
     try:
         with np.load(npz, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
+            arrays = {k: _member(npz, z, k) for k in z.files}
     except Exception as e:  # noqa: BLE001 - any decoding problem means a bad snapshot
         raise SnapshotError(f"snapshot {path!r}: cannot decode state.npz ({e})") from None
     if sorted(arrays) != manifest.get("arrays"):
