@@ -102,7 +102,7 @@ def test_comper_publishes_episodes_and_transitions_summary_checkpoint_and_resume
     assert saved and saved[-1]["identities"] > 0
 
     # a later start that failed (its memory node did not answer) left a final checkpoint of weights and counters
-    # only on top (what agent_node writes then, run_io.REPLAY_SKIPPED): the resume goes back past it to step 420
+    # only on top (what the harness writes then, run_io.REPLAY_SKIPPED): the resume goes back past it to step 420
     failed = {k: v for k, v in st.items() if k != "replay"}
     failed.update(counters={**st["counters"], "step": 421}, **{run_io.REPLAY_SKIPPED: "a service failed"})
     run_io.RunDir(tmp_path, "cr").save_checkpoint(failed, 421)
@@ -244,7 +244,7 @@ def test_vector_tasks_run_every_variant_with_an_mlp_through_ros(launch, ros_node
         assert all(1 <= len(r["returns"]) <= 2 for r in run_io.MetricsLog.read(tmp_path / alg / "metrics.jsonl", "eval"))
         # ~/evaluations is volatile: a message published before this test's subscription matched
         # the node's publisher may be missed, so check what did arrive against the summary; the last
-        # ones may not (the node waits for their acknowledgement before it ends: AgentNode.HAND_OVER_S)
+        # ones may not (the node waits for their acknowledgement before it ends: LearnerHarness.HAND_OVER_S)
         by_step = {e["step"]: e["mean_return"] for e in s["evaluations"]}
         got = [(m.global_step, m.mean_return) for m in evals[alg]]
         assert len(got) >= 3 and all(by_step.get(step) == pytest.approx(ret) for step, ret in got), (got, by_step)

@@ -1,4 +1,4 @@
-"""agent_node: the learner nodes' shared parameters and entry point, without a running ROS graph
+"""The learner nodes' shared parameters (harness.declare_learner_parameters) and entry point, without a running ROS graph
 (the start-up error test runs the node in a separate process)."""
 import dataclasses
 import functools
@@ -13,7 +13,8 @@ import time
 import pytest
 
 from comper_agent.nodes.agent_main import StopRequests, help_text
-from comper_agent.nodes.agent_node import AgentRunConfig, episode_over, redefault
+from comper_agent.nodes.node_config import AgentRunConfig, redefault
+from comper_sim.core import episode_over
 from comper_agent.nodes.comcact_node import ComcactNode, ComcactNodeConfig
 from comper_agent.nodes.comper_node import ComperNode, ComperNodeConfig
 from comper_agent.tools.supervisor import Supervisor
@@ -179,24 +180,21 @@ def test_graceful_node_ignores_repeated_signals_and_a_stuck_close_times_out():
     (ComcactNode, {"label_critic": "online"}, {"restore_batch": True, "label_critic": "online", "qt_step_gate": True}),
 ])
 def test_a_profile_sets_node_and_learner_parameters_and_the_command_line_still_wins(node_cls, given, expected):
-    """What AgentNode.__init__ does with a profile, without the bring-up: node parameters first (algorithm,
-    env_id and profile before the others), then the learner's with the profile's values as defaults."""
+    """What a learner node's start does with a profile (harness.declare_learner_parameters), without the
+    bring-up: node parameters first (algorithm, env_id and profile before the others), then the learner's with
+    the profile's values as defaults."""
     import rclpy
     from rclpy.parameter import Parameter
 
     from comper_msgs_py.params import config_to_dict
-    from comper_msgs_py.ros_params import declare_config
+    from comper_agent.nodes.harness import declare_learner_parameters
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     try:
         node = rclpy.create_node("profile_probe", context=ctx, parameter_overrides=[
             Parameter(k, value=v) for k, v in given.items()])
-        holder = node_cls.__new__(node_cls)        # only the class's profile hooks are used
-        p = declare_config(node, node_cls.CONFIG, declare_first=("algorithm", "env_id", "profile"),
-                           overrides=holder._profile_overrides)
-        cfg = declare_config(node, node_cls.LEARNER_CONFIGS[p.algorithm],
-                             overrides=holder._profile_overrides(config_to_dict(p)))
-        got = {**config_to_dict(p), **config_to_dict(cfg), "profile": holder.profile}
+        p, cfg, profile = declare_learner_parameters(node, node_cls)
+        got = {**config_to_dict(p), **config_to_dict(cfg), "profile": profile}
         assert {k: got[k] for k in expected} == expected
         node.destroy_node()
     finally:

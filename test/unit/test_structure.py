@@ -60,10 +60,10 @@ def _rel(path: Path) -> str:
 
 def test_the_rules_see_the_whole_source_tree():
     names = {_rel(p) for p in modules()}
-    assert "comper_agent/comper_agent/nodes/agent_node.py" in names and "comper_memory/comper_memory/core/memory.py" in names
+    assert "comper_agent/comper_agent/nodes/harness.py" in names and "comper_memory/comper_memory/core/memory.py" in names
     assert len(names) > 50
-    counts = method_counts(SRC / "comper_agent/comper_agent/nodes/agent_node.py")
-    assert 10 < counts["AgentNode"] <= MAX_METHODS
+    counts = method_counts(SRC / "comper_agent/comper_agent/nodes/harness.py")
+    assert 10 < counts["LearnerHarness"] <= MAX_METHODS
 
 
 def test_method_counting_counts_every_def_in_the_class_body(tmp_path):

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-__all__ = ["last_n_rule", "final_performance", "tercile_summaries", "protocol_summary"]
+__all__ = ["last_n_rule", "final_performance", "tercile_summaries", "protocol_summary", "protocol_text"]
 
 
 def last_n_rule(n_episodes: int, *, n: int = 10, n_small: int = 3, small_below: int = 25) -> int:
@@ -58,6 +58,13 @@ def tercile_summaries(progress, returns, *, budget: float | None = None, n: int 
                     "std": float(np.std(m)) if m.size else math.nan, "n": int(m.size),
                     "end_episode": int(sel.size)})
     return out
+
+
+def protocol_text(s: dict) -> str:
+    """One line of :func:`protocol_summary`'s figures, for a run's last log line."""
+    t = " | ".join(f"tercile {j + 1} (to episode {x['end_episode']}): {x['mean']:.1f} +- {x['std']:.1f}"
+                   for j, x in enumerate(s["terciles"]))
+    return f"mean of the last {s['last_k']} episodes {s['last_mean']:.1f} +- {s['last_std']:.1f}; {t}"
 
 
 def protocol_summary(returns, frames_at_end, budget: float | None = None) -> dict:

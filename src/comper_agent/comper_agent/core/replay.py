@@ -162,6 +162,13 @@ class ReplayBuffer(_Ring):
         return int(sum(a.nbytes for a in (self.states, self.next_states, self.actions, self.rewards,
                                           self.terminated, self.truncated)))
 
+    def add_step(self, state: np.ndarray, action, reward: float, next_state: np.ndarray, terminated: bool,
+                 truncated: bool, new_episode: bool = False) -> None:
+        """One agent step (the signature of :meth:`FrameReplay.add`; `new_episode` changes nothing here)."""
+        self.add(Transitions(states=state[None], actions=np.array([action], np.float32),
+                             rewards=np.array([reward], np.float32), next_states=next_state[None],
+                             terminated=np.array([terminated]), truncated=np.array([truncated])))
+
     def add(self, batch: Transitions) -> None:
         """Append a batch (oldest entries are overwritten when full)."""
         n = len(batch)
@@ -257,6 +264,8 @@ class FrameReplay(_Ring):
         self._last_ns = ns_ids
         self.pos = (p + 1) % self.capacity
         self.size = min(self.capacity, self.size + 1)
+
+    add_step = add      # one agent step, as ReplayBuffer.add_step
 
     def end_episode(self) -> None:
         self._last_ns = None

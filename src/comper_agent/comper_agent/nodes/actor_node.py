@@ -245,7 +245,7 @@ class ActorNode(Node):
             pass
         # the last EpisodeSummary usually goes out just before the actor ends (its budget spent, or the
         # learner's SIGINT): destroying the publisher first would drop it for a subscriber that had not
-        # acknowledged it yet (as the learner's hand-over in agent_node.AgentNode.shutdown)
+        # acknowledged it yet (as the learner's hand-over in harness.LearnerHarness.shutdown)
         if not wait_acknowledged((self.episode_pub,), self.HAND_OVER_S):
             self.log.warning(f"a subscriber of ~/episodes had not acknowledged this actor's last "
                              f"episodes after {self.HAND_OVER_S:g} s; it may miss them")

@@ -14,7 +14,7 @@ from comper_msgs_py.service_client import ServiceError
 
 from comper_agent.nodes import run_io
 
-__all__ = ["AgentRun", "next_due", "resume_text", "changed_parameters"]
+__all__ = ["AgentRun", "next_due", "resume_text", "changed_parameters", "unaccounted_notes"]
 
 
 def next_due(step: int, every: int) -> int | None:
@@ -25,6 +25,17 @@ def next_due(step: int, every: int) -> int | None:
 def resume_text(step: int) -> str:
     """How a run starts, for the start line: 'resuming at step N' or 'fresh run'."""
     return f"resuming at step {step}" if step else "fresh run"
+
+
+def unaccounted_notes(rec: dict, elapsed: float, steps: int) -> tuple[str, str]:
+    """Time split notes (:meth:`AgentRun.report_time_split`): the session's time that no phase accounts for
+    (the loop, logging), added to `rec` as ``unaccounted_s``."""
+    accounted = sum(v["seconds"] for k, v in rec["phases"].items()
+                    if not k.endswith("_server") and k != "qt_model_rebuild")
+    rec["unaccounted_s"] = elapsed - accounted
+    return (f" | unaccounted (loop, logging) {elapsed - accounted:.1f} s",
+            " (part of the sim / memory / qt phases); qt_server = time inside the QT trainer's reductions "
+            "(part of qt); qt_model_rebuild runs in the executor thread")
 
 
 #: parameters a resume is expected to change (where the run goes on from, and how far)

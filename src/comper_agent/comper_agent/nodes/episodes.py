@@ -17,6 +17,9 @@ from comper_msgs.msg import EpisodeSummary, EvaluationResult, TransitionBatch
 from comper_msgs_py.arrays import Transitions
 from comper_msgs_py.convert import transitions_to_batch
 from comper_msgs_py.qos import RECORDED_QOS, wait_acknowledged
+from comper_sim.core import episode_over
+
+from comper_agent.core.memory_schedule import rows_to_transitions
 
 __all__ = ["LearnerTopics", "TrainingEpisodes", "SUMMARY_QOS"]
 
@@ -107,6 +110,7 @@ class TrainingEpisodes:
         """A new episode in progress (after a reset, or an automatic one inside step_many)."""
         self.ret, self.length = 0.0, 0
         self.parts: list[Transitions] = []
+        self.rows: list | None = [] if self.topics.transitions_wanted() else None    # add_row's, while wanted
 
     def reset(self) -> np.ndarray:
         """``<sim>/reset`` (the sim's own seed sequence); the first observation."""
@@ -121,6 +125,29 @@ class TrainingEpisodes:
             r = self.sim.step(action, dtype=self.obs_dtype)
         self.add(r.reward)
         return r, r.observation
+
+    def step_many(self, actions: np.ndarray, *, rule: str, step: int, run_id: str):
+        """``<sim>/step_many`` with automatic resets (warm-up chunks of random actions; adds nothing to the
+        episode, the learner walks the steps). Returns (the transitions as float32 ``Transitions``, episode ids
+        counted from ``count``, steps from the learner's `step`; which of them end an episode by `rule`; the
+        observation after the last)."""
+        with self.timers("sim"):
+            r = self.sim.step_many(actions, autoreset=True, dtype=np.float32)
+        t = r.transitions
+        over = np.array([episode_over(rule, a, b) for a, b in zip(t.terminated, t.truncated)])
+        ends_before = np.concatenate([[0], np.cumsum(over)[:-1]]).astype(np.uint64)
+        t = Transitions(states=np.array(t.states, np.float32), actions=np.array(t.actions, np.float32),
+                        rewards=np.array(t.rewards, np.float32), next_states=np.array(t.next_states, np.float32),
+                        terminated=np.array(t.terminated), truncated=np.array(t.truncated),
+                        episode_ids=self.count + ends_before,
+                        steps=np.arange(step, step + len(t), dtype=np.uint64), run_id=run_id)
+        return t, over, r.observation
+
+    def add_row(self, row) -> None:
+        """A step the learner keeps one at a time (DQN's local replay; a ``memory_schedule.Row``): published with
+        the episode on ~/transitions when someone subscribed or recorded at its start."""
+        if self.rows is not None:
+            self.rows.append(row)
 
     def add(self, reward: float) -> None:
         """One step of the episode in progress that the learner took itself (warm-up chunks)."""
@@ -137,6 +164,9 @@ class TrainingEpisodes:
         ep_frames = self.length if ep_frames is None else ep_frames
         global_frames = step if global_frames is None else global_frames
         x = step if x is None else x
+        if self.rows:
+            self.parts.append(rows_to_transitions(self.rows, self.count, self.topics.run_id))
+            self.rows = []
         self.count += 1
         out = self.outputs
         out.progress.episode(self.ret)

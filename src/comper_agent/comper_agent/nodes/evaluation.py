@@ -81,5 +81,15 @@ class Evaluation:
         except Exception:
             return float("nan")
 
+    def sim_compute_notes(self, action: Callable[[], np.ndarray]):
+        """The time split's notes (:meth:`AgentRun.report_time_split`): the simulation's compute per step,
+        measured with `action()`'s actions (:meth:`sim_seconds_per_step`), against the 'sim' phase."""
+        def notes(rec: dict, elapsed: float, steps: int) -> tuple[str, str]:
+            sim_compute = self.sim_seconds_per_step(action)
+            rec["sim_compute_us_per_step"] = 1e6 * sim_compute
+            return "", (f"; simulation compute {1e6 * sim_compute:.0f} us/step "
+                        f"(x {steps} = {sim_compute * steps:.1f} s of the 'sim' phase)")
+        return notes
+
     def close(self) -> None:
         self.bridge.close()

@@ -29,12 +29,14 @@ SNAPSHOT_TIMEOUT_S = 600.0
 
 
 class ExperienceCheckpoint:
-    """node: the learner node (its ``mem``, ``replay`` once set up, ``run_dir``, ``run_id``, ``embedded``,
-    ``outputs``, ``p``, ``log``). ``quiesce``: called before a memory snapshot (default: the re-stored
-    batches waiting are stored); a node that holds steps not yet stored sets its own."""
+    """node: the learner's harness (its ``mem``, ``run_dir``, ``run_id``, ``embedded``, ``outputs``, ``p``,
+    ``log``, and ``node``, the rclpy node). ``replay``: the learner's local replay buffer, set by a learner that
+    has one. ``quiesce``: called before a memory snapshot (default: the re-stored batches waiting are stored);
+    a learner that holds steps not yet stored sets its own."""
 
     def __init__(self, node):
         self.node = node
+        self.replay = None
         self.quiesce = lambda: node.mem.store(None)
         self.warned = False
         self.error = ""          # why the last save gave no memory snapshot ("" when it did)
@@ -60,12 +62,13 @@ class ExperienceCheckpoint:
         or unreadable)."""
         from rcl_interfaces.srv import GetParameters
         from comper_msgs_py.service_client import call
-        node = self.node
-        client = node.create_client(GetParameters, f"/{node.p.memory_node.strip('/')}/get_parameters")
+        node = self.node.node
+        p = self.node.p
+        client = node.create_client(GetParameters, f"/{p.memory_node.strip('/')}/get_parameters")
         try:
-            if not client.wait_for_service(timeout_sec=node.p.service_timeout_s):
+            if not client.wait_for_service(timeout_sec=p.service_timeout_s):
                 return ""
-            values = call(client, GetParameters.Request(names=[name]), node.p.service_timeout_s).values
+            values = call(client, GetParameters.Request(names=[name]), p.service_timeout_s).values
         except ServiceError:
             return ""
         finally:
@@ -76,7 +79,7 @@ class ExperienceCheckpoint:
     def kept(self) -> bool:
         """Whether this run's checkpoints save experience: checkpoint_replay, and a memory or a replay buffer."""
         node = self.node
-        has_experience = node.mem is not None or getattr(node, "replay", None) is not None
+        has_experience = node.mem is not None or self.replay is not None
         return bool(node.p.checkpoint_replay) and has_experience
 
     @property
@@ -106,7 +109,7 @@ class ExperienceCheckpoint:
                                      "checkpoint_replay:=false)")
                 return None
             return {"kind": "memory", "request": request, "path": path}
-        replay = getattr(node, "replay", None)
+        replay = self.replay
         if replay is None:
             return None
         from comper_agent.core.checkpoint import save_arrays
@@ -125,7 +128,7 @@ class ExperienceCheckpoint:
         replay buffer. RuntimeError (the caller ends the start) when it is missing or does not fit. A
         checkpoint without it (older, or saved with checkpoint_replay off) resumes with an empty one."""
         node = self.node
-        replay = getattr(node, "replay", None)
+        replay = self.replay
         if saved is None:
             if node.mem is not None or replay is not None:
                 node.log.warning("the checkpoint holds no memory / replay contents: they refill from this step")

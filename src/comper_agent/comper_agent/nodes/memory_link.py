@@ -90,6 +90,16 @@ class MemoryLink:
         with self.qt_cond:
             return self.qt
 
+    def qt_predictions(self, batch: Transitions):
+        """QT(tau) for `batch`'s rows from the local copy of the newest QTModel (timed as 'qt_predict'); None
+        before the first one arrived."""
+        qt = self.qt_model()
+        if qt is None:
+            return None
+        from comper_memory.core import transition_keys
+        with self.timers("qt_predict"):
+            return qt.predict_transitions(batch, transition_keys)
+
     @property
     def qt_version(self) -> int:
         return self.qt.version if self.qt is not None else 0

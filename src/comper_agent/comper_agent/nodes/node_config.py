@@ -18,10 +18,55 @@ from comper_sim.core import EPISODE_END_RULES
 from comper_agent.core.config import COMCACT_PROFILES
 
 __all__ = ["AgentRunConfig", "ComperNodeConfig", "ComcactNodeConfig", "QtTrainerNodeConfig", "ActorNodeConfig",
-           "redefault",
+           "redefault", "comper_reducer", "reduce_pace_warning", "check_frames",
            "COMPER_ALGORITHMS"]
 
 COMPER_ALGORITHMS = ("comper", "comper_f", "comper_m", "dqn")
+
+
+def comper_reducer(p, cfg) -> str:
+    """comper_node's parameters taken together (`p`: ComperNodeConfig, `cfg`: its learner's): refuses what cannot
+    run (frame_stack on a vector task, n-step targets with q_sa labels, a QT variant without the QT trainer);
+    returns the reducer: qt_trainer, memory (reducer auto: comper_f), or none (dqn: no memory)."""
+    if not p.env_id.startswith("ALE/") and cfg.frame_stack != 1:
+        raise ValueError(f"frame_stack:={cfg.frame_stack} applies to ALE games; {p.env_id} has vector "
+                         "observations (use frame_stack:=1, or profile:=classic_control)")
+    uses_memory = p.algorithm != "dqn"
+    if cfg.n_step > 1 and uses_memory and cfg.qt_label == "q_sa":
+        raise ValueError(f"n_step:={cfg.n_step} needs qt_label:=next_value: a q_sa label (Q(s_t, a_t)) "
+                         "is not the bootstrap of s_(t+n)")
+    reducer = p.reducer if p.reducer != "auto" else ("memory" if p.algorithm == "comper_f" else "qt_trainer")
+    if not uses_memory:
+        return "none"
+    if p.algorithm in ("comper", "comper_m") and reducer != "qt_trainer":
+        raise ValueError(f"{p.algorithm} needs QT: use reducer:=qt_trainer (or auto)")
+    return reducer
+
+
+def reduce_pace_warning(p, cfg) -> str:
+    """comper_node: a warning when ``reduce_batch`` is below the TM sets stored into between two reductions
+    (:func:`~comper_agent.core.memory_schedule.sets_touched_per_reduction`), else ''."""
+    from comper_agent.core.memory_schedule import sets_touched_per_reduction
+    touched = sets_touched_per_reduction(p.reduce_every, cfg.batch_size, cfg.train_frequency, p.restore_batch)
+    if p.reduce_batch >= touched:
+        return ""
+    return (f"reduce_batch {p.reduce_batch} < up to {touched} sets stored into between two reductions (reduce_every "
+            f"{p.reduce_every} x (1 + batch {cfg.batch_size} / train_frequency {cfg.train_frequency})): TM may fall "
+            f"behind and QT's targets go stale; -p reduce_batch:={touched} or more keeps pace (docs/comper.md)")
+
+
+def check_frames(obs_shape: tuple, spec: dict, cfg) -> str:
+    """comper_node on an ALE game: ValueError when the sim's observations do not have the learner's frame stack;
+    a warning when the sim pools frames otherwise than ``frame_pooling`` (else '')."""
+    want = (84, 84) if cfg.frame_stack == 1 else (cfg.frame_stack, 84, 84)
+    if obs_shape != want:
+        raise ValueError(f"the sim serves observations {list(obs_shape)} but frame_stack:={cfg.frame_stack} "
+                         f"needs {list(want)}; start the sim with -p frame_stack:={cfg.frame_stack}")
+    pooling = spec.get("frame_pooling", "average")
+    if pooling in ("average", "max") and pooling != cfg.frame_pooling:
+        return (f"the sim pools frames by {pooling} but frame_pooling:={cfg.frame_pooling} "
+                f"(start the sim with -p frame_pooling:={cfg.frame_pooling})")
+    return ""
 
 
 def redefault(cls, name: str, default):

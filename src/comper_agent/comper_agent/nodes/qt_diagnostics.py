@@ -12,7 +12,7 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-__all__ = ["QTDiagnostics", "sampled_entry_stats"]
+__all__ = ["QTDiagnostics", "sampled_entry_stats", "sampled_set_sizes"]
 
 
 def sampled_entry_stats(step: int, batch: Transitions, counts: np.ndarray) -> dict:
@@ -27,6 +27,13 @@ def sampled_entry_stats(step: int, batch: Transitions, counts: np.ndarray) -> di
             "label_age_max": float(age.max()) if age.size else nan,
             "set_size_mean": float(cnt.mean()) if cnt.size else nan,
             "multi_member_fraction": float((cnt > 1).mean()) if cnt.size else nan}
+
+
+def sampled_set_sizes(counts: np.ndarray) -> dict:
+    """The set sizes (members per identity) of the entries sampled since the last 'memory' record (comper_node)."""
+    return {"sampled_set_size_mean": float(counts.mean()), "sampled_set_size_max": int(counts.max()),
+            "sampled_set_size_p90": float(np.percentile(counts, 90)),
+            "sampled_sets_with_similar": float((counts > 1).mean()), "sampled": int(counts.size)}
 
 
 class QTDiagnostics:
