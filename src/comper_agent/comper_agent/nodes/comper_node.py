@@ -6,7 +6,6 @@ COMPER-F and COMPER-M, and the DQN baseline (Table 35), on ALE games and vector 
     ros2 run comper_agent comper_node --ros-args -p algorithm:=comper_f   # or comper_m, dqn
     ros2 run comper_agent comper_node --ros-args -p env_id:=CartPole-v1   # a vector task (profile classic_control)
     ros2 run comper_agent comper_node --ros-args -p resume:=runs/<run_id>
-    ros2 run comper_agent comper_node --ros-args -p record:=true         # also bag the run (<run dir>/bag)
     ros2 run comper_agent comper_node --help                            # every parameter
 
 One agent step: a = epsilon-greedy(Q(s)) -> ``<sim>/step``; the label of transition t (next_value) is
@@ -19,11 +18,8 @@ episode end after ``total_frames`` frames, at ``max_steps`` if > 0, or on Ctrl-C
 summary.json; a second Ctrl-C aborts). Outputs in ``<runs_root>/<run_id>/``; docs/comper.md.
 
 Top to bottom: set-up (the experience chosen once: the memory node or a local replay), the loop, one step,
-learning (store, reduce, sample, update), records, checkpoints, the end. The update is
-:class:`comper_agent.core.comper.ComperLearner`; the run plumbing is :mod:`comper_agent.nodes.harness`.
-
-Size: four variants (comper, comper_f, comper_m, dqn) on two kinds of tasks share Algorithm 7's loop and
-records here; the run's protocol summary and its start line are this node's own outputs.
+learning (store, reduce, sample, update), checkpoints, the end. The update is ``core.comper.ComperLearner``; the
+run plumbing ``nodes.harness``; the start line, progress rows and summary.json ``nodes.comper_records``.
 """
 from __future__ import annotations
 
@@ -40,9 +36,9 @@ from comper_sim.core import episode_over
 from comper_agent.core.config import COMPER_PROFILES, ComperConfig, DQNConfig, resolve_profile
 from comper_agent.core.memory_schedule import (NStepWindows, PendingRows, Row, reduce_due, rows_to_transitions,
                                                updates_before_reduce)
-from comper_agent.core.protocol import protocol_summary, protocol_text
+from comper_agent.nodes import comper_records
 from comper_agent.nodes.agent_main import run_main
-from comper_agent.nodes.agent_run import next_due, resume_text, unaccounted_notes
+from comper_agent.nodes.agent_run import next_due, unaccounted_notes
 from comper_agent.nodes.episodes import SUMMARY_QOS
 from comper_agent.nodes.harness import LearnerHarness, declare_learner_parameters
 from comper_agent.nodes.qt_diagnostics import sampled_set_sizes
@@ -65,8 +61,6 @@ class ComperNode(Node):
     CSV_COLUMNS = ["step", "frames", "wall_time_s", "episodes", "last_train_return", "epsilon",
                    "steps_per_s", "rtm_size", "tm_sets", "identities", "loss", "eval_mean_return"]
     QT_START_HINT = " -p architecture:=comper -p reduce_batch:=1000"
-    NAMES = {"comper": "COMPER (RTM sampling, QT target)", "comper_f": "COMPER-F (RTM sampling, DQN target network)",
-             "comper_m": "COMPER-M (TM sampling, QT target)", "dqn": "DQN baseline (replay + target network)"}
 
     # ------------------------------------------------------------------------------ set-up
     def __init__(self, **node_kwargs):
@@ -81,10 +75,10 @@ class ComperNode(Node):
         # the sim parameters the learner's settings fix (ALE: frames per observation, frame pooling)
         self.sim_protocol = ({"frame_stack": int(cfg.frame_stack), "frame_pooling": cfg.frame_pooling}
                              if self.is_atari else {})
-        self.h = h = LearnerHarness(self, ComperNode, p, cfg, profile, uses_memory=reducer != "none",
-                                    uses_qt=self.uses_qt, reducer=reducer, check_env=self._check_env, obs_dtype=self.obs_dtype,
-                                    embedded_params=(self.sim_protocol, {"reduce_batch": int(p.reduce_batch)},
-                                                     {"architecture": "comper"}))
+        self.h = h = LearnerHarness(
+            self, ComperNode, p, cfg, profile, uses_memory=reducer != "none", uses_qt=self.uses_qt, reducer=reducer,
+            check_env=self._check_env, obs_dtype=self.obs_dtype,
+            embedded_params=(self.sim_protocol, {"reduce_batch": int(p.reduce_batch)}, {"architecture": "comper"}))
         self.stop_event, self.log, self.ptimers = h.stop_event, h.log, h.ptimers
         self.env, self.mem = h.env, h.mem
 
@@ -145,7 +139,7 @@ class ComperNode(Node):
             return 1
         steps = int(math.ceil(p.total_frames / self.frame_skip))       # what the progress line counts towards
         h.open_logs({"q_network": self.network, "eval_every": self.eval_every}, self.CSV_COLUMNS,
-                    min(steps, p.max_steps) if p.max_steps > 0 else steps, self.step, self._start_line())
+                    min(steps, p.max_steps) if p.max_steps > 0 else steps, self.step, comper_records.start_line(self))
         if self.mem is not None and (note := reduce_pace_warning(p, c)):
             self.log.warning(note)
         self.start_frames = self.frames
@@ -163,25 +157,8 @@ class ComperNode(Node):
                     self._memory_record()
             except Exception as exc:
                 self.log.warning(f"final memory statistics failed: {exc}")
-            self._write_summary(h.finish(rc, self._state, self.step, unaccounted_notes))
+            comper_records.write_summary(self, h.finish(rc, self._state, self.step, unaccounted_notes))
         return rc
-
-    def _start_line(self) -> str:
-        p, c, mem = self.p, self.cfg, self.mem is not None
-        return (f"{self.NAMES[p.algorithm]} on {p.env_id} (obs {list(self.h.obs_shape)} "
-                f"{np.dtype(self.obs_dtype).name}, {self.n_actions} actions, frame skip {self.frame_skip}), "
-                f"{p.bringup} bring-up, {resume_text(self.step)} to {p.total_frames} frames"
-                + (f" (max {p.max_steps} steps)" if p.max_steps > 0 else "")
-                + f"; update every {c.train_frequency} steps from step {c.learning_starts}, batch {c.batch_size}"
-                + (f"; reduce every {p.reduce_every} steps x {p.reduce_batch} sets via {self.h.reducer}" if mem
-                   else f"; replay {c.replay_size}")
-                + (f"; target network every {c.target_update_every} steps" if self.learner.uses_target_net else "")
-                + ("; qt_target_gate: QT's or the target network's bootstrap per batch (QT tested against the "
-                   "labels' bootstrap)" if self.learner.gates_qt else "")
-                + (f"; evaluation every {self.eval_every} steps x {p.eval_episodes} episodes"
-                   if self.eval_every else "")
-                + f"; profile {self.profile}, {self.network} Q-network, {c.optimizer} (loss {c.loss_reduction}), "
-                  f"reward clip {c.reward_clip}; torch threads {c.num_threads}")
 
     # ------------------------------------------------------------------------------ the loop
     def _loop(self) -> None:
@@ -201,7 +178,8 @@ class ComperNode(Node):
             if self.next_eval is not None and self.step >= self.next_eval:
                 self.evaluation.run(self.step, self.frames)
                 self.next_eval += self.eval_every
-            self._after_step()
+            if line := self.h.after_step(self.step, self._state):     # a checkpoint when due; the progress line
+                comper_records.progress(self, line)
         evals = self.evaluation.records if self.eval_every > 0 else []
         if self.eval_every > 0 and not self.stop_event.is_set() and (evals[-1]["step"] if evals else None) != self.step:
             self.evaluation.run(self.step, self.frames)       # the final policy
@@ -213,26 +191,6 @@ class ComperNode(Node):
             self._flush(with_restore=False)
         if self.windows is not None:
             self.windows.reset()          # the windows still open at the stop are dropped (and counted)
-
-    def _after_step(self) -> None:
-        """A checkpoint and a progress line (also a progress.csv row) when due."""
-        line = self.h.after_step(self.step, self._state)
-        if not line:
-            return
-        eps, rate = self.learner.epsilon(self.frames), self.h.progress.rate
-        line += f" | frames {self.frames} | eps {eps:.3f}" + (
-            (f" | RTM {self.h.rtm_size}" + (f" | QT v{self.mem.qt_version}" if self.uses_qt else ""))
-            if self.mem is not None else f" | replay {len(self.replay)}")
-        if "loss" in self.last_update:
-            line += f" | loss {self.last_update['loss']:.4f}"
-        self.h.progress_record(line, self.step, self.frames, self.last_update, frames=self.frames,
-                               episodes=self.env.count, epsilon=eps, rtm_size=self.h.rtm_size, updates=self.updates,
-                               reductions=self.h.reductions)
-        self.h.csv.write(step=self.step, frames=self.frames, wall_time_s=round(self.h.wall_time(), 2),
-                         episodes=self.env.count, last_train_return=self.h.progress.last_episode_return, epsilon=eps,
-                         steps_per_s=round(rate, 1) if math.isfinite(rate) else "", rtm_size=self.h.rtm_size,
-                         tm_sets=self.last_stats.get("tm_sets"), identities=self.last_stats.get("identities"),
-                         loss=self.last_update.get("loss"))
 
     # ------------------------------------------------------------------------------ one step
     def _reset_env(self) -> np.ndarray:
@@ -429,26 +387,6 @@ class ComperNode(Node):
             self.return_frames = [-1] * (len(self.returns) - 1) + [self.frames] if self.returns else []
 
     # ------------------------------------------------------------------------------ the end
-    def _write_summary(self, timers: dict) -> None:
-        """summary.json: the protocol's figures (last episodes, terciles) and the run's totals."""
-        p, mem = self.p, self.mem
-        s = protocol_summary(self.returns, self.return_frames, p.total_frames)
-        path = self.h.write_summary(
-            self.step, timers, frame_stack=int(self.cfg.frame_stack), total_frames_budget=int(p.total_frames),
-            frames=int(self.frames), updates=int(self.updates), episode_returns=self.returns, protocol=s,
-            complete=bool(self.frames >= p.total_frames and not self.stop_event.is_set()),
-            session_frames=self.frames - self.start_frames, memory=self.last_stats,
-            sampling={"source": "replay" if mem is None else self.sample_source,
-                      "target": "qt" if self.uses_qt else "target_network",
-                      # qt_target_gate: the updates whose batch took the target network's bootstrap
-                      **({"qt_gated": int(self.learner.qt_gated)} if self.learner.gates_qt else {}),
-                      "reducer": self.h.reducer, "sample_calls": int(mem.sample_calls if mem else 0),
-                      "restored": int(mem.restored if mem else 0), "n_step": int(self.cfg.n_step),
-                      # COMPER's n-step windows cut short by a truncation or the run's stop
-                      "n_step_windows_dropped": int(self.windows.dropped if self.windows else 0)})
-        self.log.info(f"done: {self.step} steps, {self.frames} frames, {self.env.count} episodes; {protocol_text(s)}; "
-                      f"summary {path}")
-
     def shutdown(self) -> None:
         self.h.shutdown()
 
