@@ -254,3 +254,12 @@ def test_the_supervisors_signal_handler_takes_no_lock():
     with sup.wake._cond:
         assert _returns_within(lambda: sup.on_signal(signal.SIGINT, None))
     assert sup.signals == 1
+
+
+def test_the_embedded_memory_samples_from_the_run_seed_unless_told_otherwise():
+    """A lock-step run repeats for a fixed seed: the embedded memory's sampling generator is seeded by it; a
+    sample_seed on the command line (-1: OS entropy) or from the learner wins."""
+    from comper_agent.nodes.bringup import seeded_sampling
+    assert seeded_sampling({"snapshot_root": "x"}, 7, {}) == {"sample_seed": 7, "snapshot_root": "x"}
+    assert seeded_sampling({}, 7, {"sample_seed": object()}) == {}
+    assert seeded_sampling({"sample_seed": 3}, 7, {}) == {"sample_seed": 3}

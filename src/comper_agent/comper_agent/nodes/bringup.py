@@ -20,7 +20,7 @@ from rclpy.parameter import Parameter
 
 from comper_msgs_py.ros_main import default_executor
 
-__all__ = ["Spinner", "make_embedded_nodes", "EmbeddedNodes", "START_HINTS"]
+__all__ = ["Spinner", "make_embedded_nodes", "EmbeddedNodes", "START_HINTS", "seeded_sampling"]
 
 START_HINTS = {
     "sim": "ros2 run comper_sim sim_node --ros-args -p env_id:=<task> -r __node:={name}",
@@ -83,6 +83,14 @@ class EmbeddedNodes:
             except Exception:
                 pass
         self.all.clear()
+
+
+def seeded_sampling(memory_params: dict, seed: int, command_line) -> dict:
+    """The embedded memory's parameters with its sampling seeded by the run's ``seed`` (so that a lock-step run
+    repeats for a fixed seed), unless the command line names ``sample_seed`` (-1 there: OS entropy)."""
+    if "sample_seed" in command_line or "sample_seed" in memory_params:
+        return memory_params
+    return {"sample_seed": seed, **memory_params}
 
 
 def _overrides(values: dict) -> list[Parameter]:

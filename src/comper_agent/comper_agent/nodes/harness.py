@@ -31,7 +31,7 @@ from comper_sim.client import SimClient
 from comper_agent.core.config import thesis_differences
 from comper_agent.nodes import run_io
 from comper_agent.nodes.agent_run import AgentRun, changed_parameters
-from comper_agent.nodes.bringup import START_HINTS, Spinner, make_embedded_nodes
+from comper_agent.nodes.bringup import START_HINTS, Spinner, make_embedded_nodes, seeded_sampling
 from comper_agent.nodes.episodes import LearnerTopics, TrainingEpisodes
 from comper_agent.nodes.evaluation import Evaluation
 from comper_agent.nodes.experience_checkpoint import ExperienceCheckpoint
@@ -119,6 +119,7 @@ class LearnerHarness:
             sim, mem, qt = embedded_params
             if p.checkpoint_replay and self.uses_memory:     # checkpoints hold the memory: step_<N>.memory
                 mem = {"snapshot_root": str(self.run_dir.checkpoints), **mem}
+            mem = seeded_sampling(mem, int(self.cfg.seed), node._parameter_overrides)
             self.embedded = make_embedded_nodes(
                 node.context, sim_name=p.sim_node,
                 sim_params={"env_id": p.env_id, "episode_end": p.episode_end, "run_id": self.run_id,
