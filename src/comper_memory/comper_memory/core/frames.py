@@ -1,21 +1,14 @@
 """Observations by reference: each frame stored once, stacks kept as frame ids (``frame_store``).
 
-A representative holds its state and next state. With stacked Atari frames ([4, 84, 84] uint8) that is 8
-frames, 56 KB per identity, although consecutive transitions share all but one frame: s' is the next s, and
-s' holds s's last three frames. Like Dopamine's circular replay (and DQN's original buffer), the memory then
-keeps every distinct frame once and a representative keeps the ids of its frames (:class:`FrameStore`); a
-stack is rebuilt by gathering its ids. Unlike a ring indexed by step, frames are found by their content
-(a CRC-32 digest, confirmed byte for byte), so nothing is assumed about how the client stacks or pads at an
-episode start: the rebuilt observation is byte-identical to the one stored, a stack never mixes two episodes
-(it holds the frames that were sent for it), and a frame seen again (an episode's first frame) is kept once.
+Stacked Atari frames ([4, 84, 84] uint8) make a representative's s and s' 8 frames, 56 KB, though consecutive
+transitions share all but one. Like Dopamine's circular replay, the memory then keeps each distinct frame once
+(:class:`FrameStore`) and a representative the ids of its frames, gathered back into stacks. Frames are found by
+content (CRC-32, confirmed byte for byte), not by step, so nothing is assumed about how the client stacks or pads:
+a rebuilt observation is byte-identical to the one stored and never mixes two episodes.
 
-The switch is :func:`frame_layout`, the one place that decides from ``frame_store`` and ``frame_axis``
-(MemoryConfig) and the observations' shape and dtype; ``None`` keeps the observations in the slot table as
-before (vector observations, single 2-D frames under ``auto``).
-
-Frames live in one private anonymous memory map, resized in place when the store grows (mremap: nothing copied,
-pages resident only once written), so a million frames never need twice their size, and a gather is one
-``np.take``.
+The switch is :func:`frame_layout` (``frame_store``, ``frame_axis``, the observations' shape and dtype); both of
+its branches are :class:`ObsColumns`. Frames live in one private anonymous map resized in place (mremap: nothing
+copied, pages resident once written), so a gather is one ``np.take``. docs/memory.md, "Frame store".
 """
 from __future__ import annotations
 
