@@ -32,6 +32,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .keys import sq_dist_matrix
+
 __all__ = ["KeyNormaliser", "KEY_NORM_MODES", "DELTA_RULES", "nn_quantile_scale", "resolve_store"]
 
 KEY_NORM_MODES = ("none", "running")
@@ -52,8 +54,7 @@ def nn_quantile_scale(keys: np.ndarray, delta: float, quantile: float) -> float:
     ordered by id): NN_QUERIES rows evenly spread, each against every other row. 1.0 when that quantile is 0."""
     x = np.asarray(keys, np.float64)
     q = np.unique(np.linspace(0, len(x) - 1, min(len(x), NN_QUERIES)).astype(np.int64))
-    sq = (x * x).sum(1)
-    d2 = np.maximum(sq[q, None] + sq[None, :] - 2.0 * x[q] @ x.T, 0.0)
+    d2 = np.maximum(sq_dist_matrix(x[q], x), 0.0)
     d2[np.arange(len(q)), q] = np.inf
     dq = float(np.quantile(d2.min(1), quantile))
     return float(np.sqrt(dq / delta)) if dq > 0 and delta > 0 else 1.0

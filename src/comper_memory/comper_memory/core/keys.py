@@ -5,7 +5,7 @@ import numpy as np
 
 from comper_msgs_py.arrays import Transitions
 
-__all__ = ["transition_keys", "key_size_of", "exact_sq_dist", "DEFAULT_FRAME_SCALE"]
+__all__ = ["transition_keys", "key_size_of", "exact_sq_dist", "sq_dist_matrix", "DEFAULT_FRAME_SCALE"]
 
 DEFAULT_FRAME_SCALE = 1.0 / 255.0
 
@@ -64,3 +64,11 @@ def exact_sq_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
     d *= d
     return d.sum(axis=-1)
+
+
+def sq_dist_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """[n, m] squared L2 distances of every row of a [n, d] to every row of b [m, d] in float64, by
+    |a|^2 + |b|^2 - 2 a.b (one matrix product; rounding can leave near-equal pairs slightly below 0). For
+    estimates of spread and density only: similarity decisions use :func:`exact_sq_dist`."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * a @ b.T

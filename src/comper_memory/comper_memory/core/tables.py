@@ -17,6 +17,7 @@ from typing import Callable
 
 import numpy as np
 
+from .keys import sq_dist_matrix
 from .similarity import SimilarityIndex
 from .slots import SlotTable
 
@@ -249,7 +250,7 @@ class Remover:
         elif self.removal == "reservoir":
             ev = self.evict(index, self.table.slots_of(self._reservoir_out(np.asarray(new_ids, np.int64))))
         elif self.removal == "coverage":
-            ev = self.evict(index, self._densest(over, np.asarray(new_ids, np.int64)))
+            ev = self.evict(index, self._densest(over, np.asarray(new_ids, np.int64), index.key_dim))
         else:
             ev = self._evict_oldest(index, self.table.slots_sorted, over)
         return ev + self._evict_oldest(index, self.tm.members(), self.tm.n - self.tm_capacity)
@@ -280,7 +281,7 @@ class Remover:
                 out.append(j)
         return np.asarray(out, np.int64)        # as many as `over`: every identity above the capacity
 
-    def _densest(self, over: int, new_ids: np.ndarray) -> np.ndarray:
+    def _densest(self, over: int, new_ids: np.ndarray, key_dim: int) -> np.ndarray:
         """The ``over`` slots the coverage rule lets go: candidates drawn uniformly from the live identities
         (COVERAGE_CANDIDATES per identity to evict, at least COVERAGE_MIN_CANDIDATES), each with the squared
         distance of its key (as the index sees it) to the nearest of a uniform reference sample of live identities
@@ -296,13 +297,11 @@ class Remover:
         rng = np.random.default_rng([self.seed, int(new_ids[0]) if len(new_ids) else int(self.table.ids_sorted[-1])])
         k = min(n, max(self.COVERAGE_MIN_CANDIDATES, self.COVERAGE_CANDIDATES * over))
         cand = np.sort(rng.choice(n, size=k, replace=False))
-        key_dim = self.table.keys_of_slots(slots[cand[:1]]).shape[1]
         r = min(n, self.COVERAGE_MAX_REFS, max(self.COVERAGE_MIN_CANDIDATES, self.COVERAGE_REF_VALUES // key_dim))
         refs = np.sort(rng.choice(n, size=r, replace=False))
         cols = slice(None, None, -(-key_dim // self.COVERAGE_MAX_DIMS))   # every k-th dimension of a long key
-        kc = self.table.keys_of_slots(slots[cand])[:, cols].astype(np.float64)
-        kr = self.table.keys_of_slots(slots[refs])[:, cols].astype(np.float64)
-        d2 = (kc * kc).sum(1)[:, None] + (kr * kr).sum(1)[None, :] - 2.0 * kc @ kr.T
+        d2 = sq_dist_matrix(self.table.keys_of_slots(slots[cand])[:, cols],
+                            self.table.keys_of_slots(slots[refs])[:, cols])
         d2[cand[:, None] == refs[None, :]] = np.inf            # not its own neighbour
         out = np.zeros(k, bool)
         for _ in range(over):                                   # k >= over: over < n
