@@ -25,7 +25,7 @@
    1,000,000 transitions it needs ~57 GB, more than the machine).
 
     python benchmarks/memory_frames_bench.py --sizes 100000 1000000 --before-max 100000
-    python benchmarks/memory_frames_bench.py --sizes 20000 --workdir /tmp/fb      # a quick look
+    python benchmarks/memory_frames_bench.py --sizes 20000 --workdir fb-work     # a quick look
 """
 from __future__ import annotations
 
@@ -35,6 +35,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -287,7 +288,8 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=64, help="transitions per store call")
     ap.add_argument("--sample-calls", type=int, default=300)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--workdir", default="/tmp/memory_frames_bench", help="the recorded stream and snapshots")
+    ap.add_argument("--workdir", default=os.path.join(tempfile.gettempdir(), "memory_frames_bench"),
+                    help="the recorded stream and snapshots (default: memory_frames_bench in the temporary folder)")
     ap.add_argument("--out", default="", help="write the rows as JSON here")
     ap.add_argument("--run-variant", default="", help=argparse.SUPPRESS)
     ap.add_argument("--n", type=int, default=0, help=argparse.SUPPRESS)
