@@ -215,6 +215,13 @@ def table_markdown(records: list[dict]) -> str:
                         f"{vs[0]} | {vs[1]} | {mean(c['per_1000'], lambda v: f'{v:,.0f}')} | "
                         f"{mean(c['bytes'], lambda v: f'{v / 1e6:,.1f}')} | "
                         f"{mean(c['evictions'], lambda v: f'{v:,.0f}')} |")
+    rows.append("")
+    word = {True: "yes", False: "no", None: "not yet (under 2 seeds in a group)"}
+    for task, cells in summary(records).items():
+        for budget in sorted({b for (m, b) in cells if m == "compact"}, reverse=True):
+            v = verdicts(cells, budget)
+            rows.append(f"- {task} at {budget:,}: compact within 5 % of full: {word[v.get('within_5pct')]}; above "
+                        f"FIFO: {word[v.get('above_fifo')]}; above the reservoir: {word[v.get('above_reservoir')]}.")
     return "\n".join(rows) + "\n"
 
 

@@ -50,3 +50,15 @@ def test_run_figures_and_export(tmp_path):
     assert f["per_1000"] == 250.0 and f["evictions"] == 7500 and f["bytes"] == 50_000_000
     md = BUDGET.table_markdown([rec, {**rec, "seed": 4}])
     assert "| Hopper-v4 | compact | 5,000 | 3, 4 | 500.0 [500.0, 500.0] | 450.0 [450.0, 450.0] |" in md
+
+
+def test_the_verdict_rules_of_the_protocol():
+    """Within 5 %: the lower end of the interval of (compact - full) at least -5 % of full's mean; above FIFO: the
+    interval of (compact - FIFO) above 0. Under two seeds in a group: no verdict."""
+    def cells(full, compact, fifo):
+        return {("full", None): {"last3": full}, ("compact", 500): {"last3": compact}, ("fifo", 500): {"last3": fifo}}
+    v = BUDGET.verdicts(cells([100.0, 102.0], [99.0, 101.0], [10.0, 12.0]), 500)
+    assert v == {"within_5pct": True, "above_fifo": True}
+    v = BUDGET.verdicts(cells([100.0, 102.0], [50.0, 101.0], [60.0, 90.0]), 500)
+    assert v == {"within_5pct": False, "above_fifo": False}
+    assert BUDGET.verdicts(cells([100.0], [99.0, 101.0], [10.0]), 500) == {}
